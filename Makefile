@@ -1,0 +1,45 @@
+# `make demo` and `make test` do every set-up step themselves on a fresh machine.
+SHELL := /bin/bash
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.setup-stamp
+APT_PACKAGES := libosmesa6 libegl1 libegl-mesa0 libgl1-mesa-dri libglu1-mesa chromium chromium-driver fonts-dejavu-core
+SHARED_DATA ?= $(abspath ../shared/data)
+export GRADIO_ANALYTICS_ENABLED := False
+export HF_HUB_OFFLINE := 1
+export HF_HUB_DISABLE_TELEMETRY := 1
+export TRANSFORMERS_OFFLINE := 1
+
+.PHONY: setup system-deps demo test test-fast clean
+
+system-deps:
+	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
+	fi
+
+$(STAMP): requirements.txt pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -r requirements.txt
+	# pyrender pins PyOpenGL 3.1.0, which cannot create OSMesa contexts; 3.1.10 can.
+	$(BIN)/pip install -q --no-deps PyOpenGL==3.1.10
+	$(BIN)/pip install -q --no-deps -e .
+	touch $(STAMP)
+
+setup: system-deps $(STAMP)
+
+demo: setup
+	$(BIN)/python -m app
+
+test: setup
+	SALAD_SHARED_DATA=$(SHARED_DATA) $(BIN)/python -m pytest -q -rs --junitxml=test-artifacts/junit.xml
+
+test-fast: setup
+	SALAD_SHARED_DATA=$(SHARED_DATA) $(BIN)/python -m pytest -q -m "not slow and not browser"
+
+clean:
+	rm -rf $(VENV) test-artifacts .pytest_cache

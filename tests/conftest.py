@@ -1,0 +1,72 @@
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def shared_data_dir() -> Path | None:
+    env = os.environ.get("SALAD_SHARED_DATA")
+    for cand in ([Path(env)] if env else []) + [REPO.parent / "shared" / "data"]:
+        if cand.is_dir():
+            return cand
+    return None
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    d = shared_data_dir()
+    if d is None:
+        pytest.skip("../shared/data is not present")
+    return d
+
+
+@pytest.fixture(scope="session")
+def hml_sample(shared_data):
+    d = shared_data / "humanml3d-sample"
+    return {
+        "features": np.load(d / "new_joint_vecs" / "012314.npy"),
+        "joints": np.load(d / "new_joints" / "012314.npy"),
+        "mean": np.load(d / "Mean.npy"),
+        "std": np.load(d / "Std.npy"),
+    }
+
+
+def synthetic_walk(frames: int = 60, seed: int = 0, speed: float = 1.2, turn: float = 0.0) -> np.ndarray:
+    """A plausible walking skeleton (T, 22, 3) in metres, built from bone directions, for
+    tests that must not depend on outside data."""
+    from salad.motion import skeleton as sk
+    from salad.motion.representation import forward_kinematics
+    import torch
+    from salad.motion.quaternion import qmul, yaw_quat, qbetween
+
+    rng = np.random.default_rng(seed)
+    lengths = np.array([0, .11, .11, .12, .38, .38, .14, .40, .40, .06, .14, .14,
+                        .22, .12, .12, .10, .12, .12, .26, .26, .25, .25])
+    t = np.arange(frames) / 20.0
+    phase = 2 * np.pi * 1.8 * t / 2
+    quats = np.zeros((frames, 22, 4))
+    quats[..., 0] = 1.0
+    heading = turn * t
+    quats[:, 0] = yaw_quat(torch.from_numpy(heading)).numpy()
+
+    def swing(angle):  # rotation about +X
+        return np.stack([np.cos(angle / 2), np.sin(angle / 2), 0 * angle, 0 * angle], -1)
+
+    quats[:, 1] = swing(0.4 * np.sin(phase))
+    quats[:, 2] = swing(-0.4 * np.sin(phase))
+    quats[:, 4] = swing(-0.3 * np.clip(np.sin(phase + 1), 0, None))
+    quats[:, 5] = swing(-0.3 * np.clip(np.sin(-phase + 1), 0, None))
+    quats[:, 16] = swing(-0.3 * np.sin(phase))
+    quats[:, 17] = swing(0.3 * np.sin(phase))
+    quats[:, 18] = swing(-0.2 - 0.1 * rng.random(frames))
+    quats[:, 19] = swing(-0.2 - 0.1 * rng.random(frames))
+    offsets = torch.from_numpy(sk.RAW_OFFSETS * lengths[:, None])
+    fwd = np.stack([np.sin(heading), 0 * t, np.cos(heading)], -1)
+    root = np.cumsum(fwd * speed / 20.0, axis=0)
+    root[:, 1] = 0.93 + 0.02 * np.sin(2 * phase)
+    j = forward_kinematics(torch.from_numpy(quats), torch.from_numpy(root), offsets).numpy()
+    j[..., 1] -= j[..., 1].min()
+    return j.astype(np.float32)
