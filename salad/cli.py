@@ -1,0 +1,118 @@
+"""The `salad` command line."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+
+def _env_defaults() -> None:
+    # Never reach for a model hub or send telemetry: everything here runs offline.
+    for k, v in (("HF_HUB_OFFLINE", "1"), ("HF_HUB_DISABLE_TELEMETRY", "1"), ("TRANSFORMERS_OFFLINE", "1"),
+                 ("GRADIO_ANALYTICS_ENABLED", "False")):
+        os.environ.setdefault(k, v)
+
+
+def cmd_data_build(a) -> int:
+    from .data.build import build_bandai
+    if a.source != "bandai":
+        raise SystemExit(f"unknown source {a.source!r}; supported: bandai")
+    report = build_bandai(a.input, a.out, workers=a.workers, seed=a.seed)
+    print(json.dumps({k: v for k, v in report.items() if k != "skipped"}, indent=2))
+    for name, why in report["skipped"].items():
+        print(f"skipped {name}: {why}")
+    return 0
+
+
+def cmd_data_stats(a) -> int:
+    from .data.build import dataset_stats
+    s = dataset_stats(a.dir)
+    if a.json:
+        print(json.dumps(s, indent=2))
+        return 0
+    print(f"{a.dir}: {s['motions']} motions, {s['hours']:.2f} hours")
+    for title, key in (("split", "per_split"), ("content", "per_content"), ("style", "per_style"),
+                       ("length", "length_histogram")):
+        if s[key]:
+            print(f"\nper {title}:")
+            for k, v in (sorted(s[key].items()) if key != "length_histogram" else s[key].items()):
+                print(f"  {k:24s} {v:6d}")
+    if s["length_seconds"]:
+        print("\nlength (s): " + ", ".join(f"{k} {v:.2f}" for k, v in s["length_seconds"].items()))
+    return 0
+
+
+def cmd_train(a) -> int:
+    from .config import load_toml
+    from .training.configs import DenoiserTrainConfig, VAETrainConfig
+    from .training.loop import Trainer
+    if a.what == "vae":
+        from .training.vae_task import VAETask
+        cfg = load_toml(VAETrainConfig, a.config)
+        _override(cfg, a)
+        task, ema = VAETask(cfg), None
+    elif a.what == "denoiser":
+        from .training.denoiser_task import DenoiserTask
+        cfg = load_toml(DenoiserTrainConfig, a.config)
+        _override(cfg, a)
+        task, ema = DenoiserTask(cfg), cfg.ema_decay
+    else:
+        from .eval.train_evaluator import train_evaluator
+        return train_evaluator(a)
+    out = Trainer(task, cfg.optim, cfg.run, ema_decay=ema).fit()
+    print(f"model written to {out}")
+    return 0
+
+
+def _override(cfg, a) -> None:
+    if a.out_dir:
+        cfg.run.out_dir = a.out_dir
+    if a.max_steps:
+        cfg.optim.max_steps = a.max_steps
+    if a.data:
+        cfg.data.root = a.data
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="salad", description="Skeleton-aware latent diffusion for text-driven motion.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    data = sub.add_parser("data", help="build and inspect datasets").add_subparsers(dest="data_cmd", required=True)
+    b = data.add_parser("build", help="build a HumanML3D-format dataset from labelled mocap")
+    b.add_argument("--source", default="bandai", help="dataset kind (bandai)")
+    b.add_argument("--input", required=True, help="the archive (.tar.xz) or its unpacked folder")
+    b.add_argument("--out", required=True, help="output directory")
+    b.add_argument("--workers", type=int, default=2)
+    b.add_argument("--seed", type=int, default=0)
+    b.set_defaults(func=cmd_data_build)
+    s = data.add_parser("stats", help="counts per content, style and split, and lengths")
+    s.add_argument("dir")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_data_stats)
+
+    t = sub.add_parser("train", help="train the VAE, the denoiser or the evaluator")
+    t.add_argument("what", choices=("vae", "denoiser", "evaluator"))
+    t.add_argument("--config", required=True, help="TOML config file")
+    t.add_argument("--out-dir", help="override run.out_dir")
+    t.add_argument("--data", help="override data.root")
+    t.add_argument("--max-steps", type=int, help="override optim.max_steps")
+    t.set_defaults(func=cmd_train)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    _env_defaults()
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args) or 0
+    except KeyboardInterrupt:
+        return 130
+    except (ValueError, FileNotFoundError, RuntimeError) as e:
+        print(f"salad: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,210 @@
+"""Natural-language captions for labelled mocap clips, and left/right swapping of text.
+
+Captions are generated from a clip's content and style labels with varied subjects,
+verb phrases and manner phrases, drawn reproducibly from the clip's name. What each
+content label means was checked on the data itself (which wrist moves, where the root
+goes): e.g. Bandai's "bye" waves the right hand, "walk-left" walks diagonally forward
+to the left while still facing forward.
+"""
+from __future__ import annotations
+
+import hashlib
+import random
+import re
+
+SUBJECTS = ("a person", "someone", "a man", "a woman", "the person", "a character", "a figure", "somebody")
+
+# Verb phrases in the third person; {poss} becomes "their"/"his"/"her" to agree with the subject.
+CONTENT_PHRASES: dict[str, tuple[str, ...]] = {
+    "walk": ("walks forward", "walks straight ahead", "is walking forward", "takes a few steps forward",
+             "walks ahead in a straight line"),
+    "run": ("runs forward", "jogs forward", "is running straight ahead", "runs ahead"),
+    "dash": ("sprints forward", "dashes ahead at full speed", "runs forward very fast", "sprints straight ahead"),
+    "walk-back": ("walks backwards", "steps backward", "is walking backwards", "walks back without turning around"),
+    "walk-left": ("walks diagonally forward to the left", "walks forward while drifting to the left",
+                  "walks ahead and to the left, still facing forward"),
+    "walk-right": ("walks diagonally forward to the right", "walks forward while drifting to the right",
+                   "walks ahead and to the right, still facing forward"),
+    "walk-turn-left": ("walks and turns left", "walks forward, then turns to the left", "walks in a left turn",
+                       "turns left while walking"),
+    "walk-turn-right": ("walks and turns right", "walks forward, then turns to the right", "walks in a right turn",
+                        "turns right while walking"),
+    "bow": ("bows", "takes a bow", "bends forward in a bow", "bows politely"),
+    "bye": ("waves goodbye with {poss} right hand", "waves {poss} right hand to say goodbye",
+            "says goodbye, waving the right hand"),
+    "byebye": ("waves goodbye with both hands", "waves both hands to say goodbye", "says bye-bye with both hands"),
+    "guide": ("gestures with {poss} right hand to show the way", "guides someone with a sweep of the right arm",
+              "points the way with {poss} right hand"),
+    "respond": ("raises {poss} left hand to respond", "answers a call by lifting the left hand",
+                "responds by raising the left hand"),
+    "call": ("calls out to someone with both hands raised", "calls to somebody, lifting both hands",
+             "shouts to get someone's attention, raising both hands"),
+    "punch": ("throws punches", "punches forward", "is punching in the air", "boxes, throwing several punches"),
+    "kick": ("kicks", "does a series of kicks", "kicks into the air", "performs kicks"),
+    "slash": ("slashes with an imaginary sword", "swings {poss} arms as if slashing with a blade",
+              "makes slashing motions with {poss} arms"),
+    "dance-short": ("dances", "performs a dance", "is dancing energetically", "does a dance routine"),
+    "dance-long": ("dances", "performs a long dance", "is dancing", "does a dance routine"),
+    "wave-left-hand": ("waves {poss} left hand", "waves with the left hand", "raises {poss} left hand and waves",
+                       "waves hello with {poss} left hand"),
+    "wave-right-hand": ("waves {poss} right hand", "waves with the right hand", "raises {poss} right hand and waves",
+                        "waves hello with {poss} right hand"),
+    "wave-both-hands": ("waves both hands", "waves with both arms", "raises both hands and waves",
+                        "waves both arms above {poss} head"),
+    "raise-up-left-hand": ("raises {poss} left hand", "lifts the left hand up", "puts {poss} left arm up in the air",
+                           "raises the left arm"),
+    "raise-up-right-hand": ("raises {poss} right hand", "lifts the right hand up",
+                            "puts {poss} right arm up in the air", "raises the right arm"),
+    "raise-up-both-hands": ("raises both hands", "lifts both arms up", "puts both hands up in the air",
+                            "raises both arms over {poss} head"),
+}
+
+# Manner: (adverbial phrases, adjectives for the subject). An empty adverb means "no style word".
+STYLE_PHRASES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "normal": (("", "normally", "in an ordinary way", "casually"), ("",)),
+    "happy": (("happily", "cheerfully", "in a happy mood", "joyfully"), ("happy", "cheerful")),
+    "sad": (("sadly", "in a sad way", "gloomily", "looking sad"), ("sad", "gloomy")),
+    "angry": (("angrily", "in an angry way", "furiously", "looking angry"), ("angry", "furious")),
+    "proud": (("proudly", "with pride", "in a proud manner"), ("proud",)),
+    "not-confident": (("timidly", "without confidence", "hesitantly", "shyly"), ("timid", "hesitant", "shy")),
+    "masculinity": (("in a masculine way", "with a masculine manner", "in a manly way"), ("masculine",)),
+    "masculine": (("in a masculine way", "with a masculine manner", "in a manly way"), ("masculine",)),
+    "feminine": (("in a feminine way", "with a feminine manner", "gracefully, in a feminine style"), ("feminine",)),
+    "childish": (("like a child", "in a childish way", "playfully like a kid"), ("childish", "childlike")),
+    "old": (("like an old person", "slowly like an elderly person", "in an old, frail way"), ("old", "elderly")),
+    "elderly": (("like an elderly person", "like an old person", "slowly and carefully like the elderly"),
+                ("elderly", "old")),
+    "tired": (("tiredly", "wearily", "looking tired", "in a tired way"), ("tired", "weary")),
+    "exhausted": (("looking exhausted", "wearily", "in an exhausted way", "as if completely worn out"),
+                  ("exhausted", "worn-out")),
+    "active": (("energetically", "actively", "full of energy", "vigorously"), ("energetic", "active")),
+    "youthful": (("youthfully", "in a youthful way", "with youthful energy", "lightly and briskly"),
+                 ("youthful", "young")),
+    "musical": (("theatrically, like in a musical", "in a showy, musical style", "like a stage performer"),
+                ("theatrical",)),
+    "giant": (("like a giant", "with heavy, giant-like movements", "like a huge, heavy giant"), ("giant",)),
+    "chimpira": (("like a thug", "with a swaggering, thuggish attitude", "like a street punk"), ("swaggering",)),
+}
+
+_POSSESSIVE = {"a man": "his", "a woman": "her"}
+
+
+def _article(word: str) -> str:
+    return "an" if word[:1] in "aeiou" else "a"
+
+
+def caption_variants(content: str, style: str) -> list[tuple[str, int]]:
+    """Every caption the templates can produce for a (content, style) pair, each with
+    the index of the verb phrase it uses."""
+    if content not in CONTENT_PHRASES:
+        raise KeyError(f"no caption templates for content {content!r}")
+    if style not in STYLE_PHRASES:
+        raise KeyError(f"no caption templates for style {style!r}")
+    adverbs, adjectives = STYLE_PHRASES[style]
+    out = []
+    for subj in SUBJECTS:
+        poss = _POSSESSIVE.get(subj, "their")
+        for k, verb in enumerate(CONTENT_PHRASES[content]):
+            v = verb.format(poss=poss)
+            for adv in adverbs:
+                out.append((f"{subj} {v} {adv}" if adv else f"{subj} {v}", k))
+            for adj in adjectives:
+                if adj and subj.startswith("a "):
+                    out.append((f"{_article(adj)} {adj} {subj[2:]} {v}", k))
+    return out
+
+
+def captions_for(content: str, style: str, key: str, n: int = 3) -> list[str]:
+    """`n` distinct captions for a clip, the same for the same key on every run."""
+    variants = caption_variants(content, style)
+    seed = int.from_bytes(hashlib.sha256(key.encode()).digest()[:8], "little")
+    rng = random.Random(seed)
+    rng.shuffle(variants)
+    picked: list[str] = []
+    # Prefer captions that differ in their verb phrase, so the set is genuinely varied.
+    used = set()
+    for text, verb in variants:
+        if verb not in used:
+            used.add(verb)
+            picked.append(text)
+        if len(picked) == n:
+            return picked
+    for text, _ in variants:
+        if len(picked) == n:
+            break
+        if text not in picked:
+            picked.append(text)
+    return picked
+
+
+_SWAPS = (("counterclockwise", "clockwise"), ("counter-clockwise", "clockwise"), ("left", "right"))
+
+
+def swap_left_right(text: str) -> str:
+    """Swap left/right (and clockwise/counterclockwise) words, keeping case, e.g. for
+    captions of mirrored motions."""
+    pairs = {}
+    for a, b in _SWAPS:
+        pairs.setdefault(a, b)
+        pairs.setdefault(b, a)
+    pattern = re.compile(r"\b(" + "|".join(sorted(map(re.escape, pairs), key=len, reverse=True)) + r")\b",
+                         re.IGNORECASE)
+
+    def repl(m: re.Match) -> str:
+        w = m.group(0)
+        r = pairs[w.lower()]
+        return r.capitalize() if w[0].isupper() else r
+
+    return pattern.sub(repl, text)
+
+
+MIRRORED_CONTENT = {"walk-left": "walk-right", "walk-right": "walk-left",
+                    "walk-turn-left": "walk-turn-right", "walk-turn-right": "walk-turn-left",
+                    "wave-left-hand": "wave-right-hand", "wave-right-hand": "wave-left-hand",
+                    "raise-up-left-hand": "raise-up-right-hand", "raise-up-right-hand": "raise-up-left-hand"}
+
+
+def mirrored_captions(captions: list[str]) -> list[str]:
+    return [swap_left_right(c) for c in captions]
+
+
+# A small part-of-speech lexicon for the template vocabulary, so caption lines carry
+# HumanML3D's `word/POS` token field without a tagger dependency.
+_POS = {
+    "a": "DET", "an": "DET", "the": "DET", "both": "DET", "their": "DET", "his": "DET", "her": "DET",
+    "someone": "PRON", "somebody": "PRON", "someone's": "PRON",
+    "and": "CCONJ", "then": "ADV", "while": "SCONJ", "as": "SCONJ", "if": "SCONJ", "like": "ADP",
+    "with": "ADP", "in": "ADP", "to": "ADP", "into": "ADP", "over": "ADP", "above": "ADP", "without": "ADP",
+    "at": "ADP", "of": "ADP", "by": "ADP", "up": "ADP", "out": "ADP",
+}
+_LEMMA = {"walks": "walk", "runs": "run", "jogs": "jog", "sprints": "sprint", "dashes": "dash", "steps": "step",
+          "takes": "take", "bows": "bow", "bends": "bend", "waves": "wave", "raises": "raise", "lifts": "lift",
+          "puts": "put", "turns": "turn", "says": "say", "gestures": "gesture", "guides": "guide",
+          "points": "point", "answers": "answer", "responds": "respond", "calls": "call", "shouts": "shout",
+          "throws": "throw", "punches": "punch", "boxes": "box", "kicks": "kick", "does": "do",
+          "performs": "perform", "slashes": "slash", "swings": "swing", "makes": "make", "dances": "dance",
+          "is": "be", "hands": "hand", "arms": "arm", "steps,": "step", "punches,": "punch"}
+
+
+def tag_tokens(caption: str) -> str:
+    words = re.findall(r"[A-Za-z'-]+", caption.lower())
+    tags = []
+    for w in words:
+        lemma = _LEMMA.get(w, w)
+        if w in _POS:
+            pos = _POS[w]
+        elif w in _LEMMA and lemma not in ("hand", "arm"):
+            pos = "VERB"
+        elif w.endswith("ly"):
+            pos = "ADV"
+        elif w in ("left", "right", "forward", "backward", "backwards", "ahead", "back", "straight", "diagonally"):
+            pos = "ADV"
+        else:
+            pos = "NOUN"
+        tags.append(f"{lemma}/{pos}")
+    return " ".join(tags)
+
+
+def caption_line(caption: str, start: float = 0.0, end: float = 0.0) -> str:
+    """One line of a HumanML3D texts/<id>.txt file."""
+    return f"{caption}#{tag_tokens(caption)}#{start:.1f}#{end:.1f}"

@@ -1,0 +1,81 @@
+"""Multi-head attention whose probability maps a controller can observe and replace.
+
+With no controller attached the module calls PyTorch's fused
+scaled_dot_product_attention and never materialises the maps. With one attached it
+computes softmax(QK^T) explicitly and hands the maps to the controller, which returns
+the maps to use (the same tensor, or an edited one) — the hook that zero-shot
+editing and attention capture are built on.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+TEMPORAL, SKELETAL, CROSS = "temporal", "skeletal", "cross"
+
+
+@dataclass
+class AttentionCall:
+    """What a controller is told about one attention call.
+
+    probs has shape (N, heads, Lq, Lk) where, for a batch of B motions with T latent
+    frames and J body parts:
+      temporal: N = B*J, Lq = Lk = T   (rows ordered b-major: n = b*J + j)
+      skeletal: N = B*T, Lq = Lk = J   (n = b*T + t)
+      cross:    N = B,   Lq = T*J, Lk = text tokens  (query q = t*J + j)
+    """
+
+    kind: str
+    layer: int
+    probs: torch.Tensor
+    batch: int
+    frames: int
+    parts: int
+
+
+class AttentionController(Protocol):
+    def __call__(self, call: AttentionCall) -> torch.Tensor: ...
+
+
+class Attention(nn.Module):
+    def __init__(self, dim: int, heads: int, kind: str, context_dim: int | None = None, dropout: float = 0.0):
+        super().__init__()
+        if dim % heads:
+            raise ValueError(f"dim {dim} is not divisible by heads {heads}")
+        self.kind, self.heads, self.dropout = kind, heads, dropout
+        self.layer = -1  # set by the denoiser so controllers know where a map comes from
+        context_dim = context_dim or dim
+        self.to_q = nn.Linear(dim, dim)
+        self.to_k = nn.Linear(context_dim, dim)
+        self.to_v = nn.Linear(context_dim, dim)
+        self.to_out = nn.Linear(dim, dim)
+        self.controller: AttentionController | None = None
+
+    def _heads(self, x: torch.Tensor) -> torch.Tensor:
+        N, L, D = x.shape
+        return x.view(N, L, self.heads, D // self.heads).transpose(1, 2)
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None,
+                key_mask: torch.Tensor | None = None, shape: tuple[int, int, int] = (0, 0, 0)) -> torch.Tensor:
+        """x (N, Lq, D); context (N, Lk, Dc) or None for self-attention; key_mask (N, Lk)
+        bool, True = may be attended. shape = (batch, frames, parts) for controllers."""
+        context = x if context is None else context
+        q, k, v = self._heads(self.to_q(x)), self._heads(self.to_k(context)), self._heads(self.to_v(context))
+        mask = None if key_mask is None else key_mask[:, None, None, :]
+        p_drop = self.dropout if self.training else 0.0
+        if self.controller is None:
+            out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p_drop)
+        else:
+            scores = (q @ k.transpose(-2, -1)) * (q.shape[-1] ** -0.5)
+            if mask is not None:
+                scores = scores.masked_fill(~mask, float("-inf"))
+            probs = scores.softmax(dim=-1)
+            probs = self.controller(AttentionCall(self.kind, self.layer, probs, *shape))
+            probs = F.dropout(probs, p_drop, self.training)
+            out = probs.to(v.dtype) @ v
+        N, H, L, Dh = out.shape
+        return self.to_out(out.transpose(1, 2).reshape(N, L, H * Dh))

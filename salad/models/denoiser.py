@@ -1,0 +1,161 @@
+"""Skeleton-aware denoiser (SALAD §3.2, supp. A.2).
+
+Tokens are (latent frame, body part) pairs. Each layer runs temporal attention (each
+part over time), skeletal attention (the 7 parts within a frame), cross-attention to
+the text tokens and a feed-forward net; every sub-block is pre-LayerNorm, modulated by
+FiLM from the diffusion timestep, and residual. Layers are joined U-Net style: the
+outputs of the first half feed the second half through skip connections.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from .attention import CROSS, SKELETAL, TEMPORAL, Attention
+
+
+@dataclass
+class DenoiserConfig:
+    latent_dim: int = 32
+    parts: int = 7
+    dim: int = 256
+    heads: int = 8
+    ff_dim: int = 1024
+    layers: int = 5
+    dropout: float = 0.1
+    text_dim: int = 512
+    # False gives the "w/o CrossAttn" ablation of SALAD Table 3: the sentence feature is
+    # concatenated to every motion token and the layers use self-attention only.
+    cross_attention: bool = True
+    # Lets one model generate both fixed-length motions (key-padding mask) and
+    # "auto"-length ones on a full canvas whose end the VAE's activation channel marks.
+    length_modes: bool = True
+
+
+def sinusoid(positions: torch.Tensor, dim: int) -> torch.Tensor:
+    """Transformer sinusoidal embedding of (any shape) positions -> (..., dim)."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float32, device=positions.device) / half)
+    args = positions.float()[..., None] * freqs
+    return torch.cat((torch.sin(args), torch.cos(args)), dim=-1)
+
+
+class FiLM(nn.Module):
+    """out * (1 + scale) + shift, with scale and shift predicted from the timestep embedding."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.proj = nn.Sequential(nn.SiLU(), nn.Linear(dim, 2 * dim))
+
+    def forward(self, h: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        scale, shift = self.proj(emb).chunk(2, dim=-1)           # (B, D) each
+        extra = (1,) * (h.ndim - 2)
+        return h * (1 + scale.view(scale.shape[0], *extra, -1)) + shift.view(shift.shape[0], *extra, -1)
+
+
+class STLayer(nn.Module):
+    def __init__(self, c: DenoiserConfig, index: int):
+        super().__init__()
+        d = c.dim
+        self.norm_t, self.norm_s, self.norm_f = nn.LayerNorm(d), nn.LayerNorm(d), nn.LayerNorm(d)
+        self.temporal = Attention(d, c.heads, TEMPORAL, dropout=c.dropout)
+        self.skeletal = Attention(d, c.heads, SKELETAL, dropout=c.dropout)
+        self.film_t, self.film_s, self.film_f = FiLM(d), FiLM(d), FiLM(d)
+        self.cross = None
+        if c.cross_attention:
+            self.norm_c, self.norm_text = nn.LayerNorm(d), nn.LayerNorm(d)
+            self.cross = Attention(d, c.heads, CROSS, dropout=c.dropout)
+            self.film_c = FiLM(d)
+        self.ff = nn.Sequential(nn.Linear(d, c.ff_dim), nn.GELU(), nn.Dropout(c.dropout), nn.Linear(c.ff_dim, d))
+        self.drop = nn.Dropout(c.dropout)
+        for attn in self.attentions():
+            attn.layer = index
+
+    def attentions(self) -> list[Attention]:
+        return [a for a in (self.temporal, self.skeletal, self.cross) if a is not None]
+
+    def forward(self, x, emb, text, text_mask, frame_mask):
+        B, T, J, D = x.shape
+        shape = (B, T, J)
+        h = self.norm_t(x).transpose(1, 2).reshape(B * J, T, D)
+        key_mask = None if frame_mask is None else frame_mask.repeat_interleave(J, dim=0)
+        h = self.temporal(h, key_mask=key_mask, shape=shape).reshape(B, J, T, D).transpose(1, 2)
+        x = x + self.drop(self.film_t(h, emb))
+
+        h = self.skeletal(self.norm_s(x).reshape(B * T, J, D), shape=shape).reshape(B, T, J, D)
+        x = x + self.drop(self.film_s(h, emb))
+
+        if self.cross is not None:
+            h = self.cross(self.norm_c(x).reshape(B, T * J, D), self.norm_text(text), key_mask=text_mask, shape=shape)
+            x = x + self.drop(self.film_c(h.reshape(B, T, J, D), emb))
+
+        return x + self.drop(self.film_f(self.ff(self.norm_f(x)), emb))
+
+
+class Denoiser(nn.Module):
+    def __init__(self, config: DenoiserConfig | None = None):
+        super().__init__()
+        self.config = c = config or DenoiserConfig()
+        d = c.dim
+        in_dim = c.latent_dim + (d if not c.cross_attention else 0)
+        self.input = nn.Sequential(nn.Linear(in_dim, d), nn.ReLU(), nn.Linear(d, d))
+        self.part_embedding = nn.Parameter(torch.zeros(c.parts, d))
+        nn.init.normal_(self.part_embedding, std=0.02)
+        self.pe_drop = nn.Dropout(c.dropout)
+        self.time_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+        self.length_mode = nn.Embedding(2, d) if c.length_modes else None
+        self.text_proj = nn.Linear(c.text_dim, d)
+
+        n_skip = c.layers // 2
+        self.layers = nn.ModuleList(STLayer(c, i) for i in range(c.layers))
+        self.skip_proj = nn.ModuleList(nn.Linear(2 * d, d) for _ in range(n_skip))
+        self.n_skip = n_skip
+        self.output = nn.Sequential(nn.LayerNorm(d), nn.Linear(d, d), nn.ReLU(), nn.Linear(d, c.latent_dim))
+
+    def attentions(self) -> list[Attention]:
+        return [a for layer in self.layers for a in layer.attentions()]
+
+    def set_controller(self, controller) -> None:
+        """Attach a controller to every attention module (None detaches)."""
+        for a in self.attentions():
+            a.controller = controller
+
+    def forward(self, z: torch.Tensor, t: torch.Tensor, text: torch.Tensor, text_mask: torch.Tensor | None = None,
+                frame_mask: torch.Tensor | None = None, pooled_text: torch.Tensor | None = None,
+                auto_length: torch.Tensor | None = None) -> torch.Tensor:
+        """z (B, T, 7, latent_dim) noisy latents; t (B,) timesteps; text (B, L, text_dim) token
+        features with text_mask (B, L) True for real tokens; frame_mask (B, T) True for real
+        latent frames; pooled_text (B, text_dim) for the no-cross-attention variant;
+        auto_length (B,) bool, True for full-canvas (length decided by the decoder) samples."""
+        B, T, J, _ = z.shape
+        c = self.config
+        if c.cross_attention:
+            h = self.input(z)
+            text_tokens = self.text_proj(text)
+        else:
+            if pooled_text is None:
+                raise ValueError("this denoiser has no cross-attention and needs pooled_text")
+            sent = self.text_proj(pooled_text)[:, None, None, :].expand(B, T, J, c.dim)
+            h = self.input(torch.cat((z, sent), dim=-1))
+            text_tokens = None
+        frames = torch.arange(T, device=z.device)
+        h = h + sinusoid(frames, c.dim).to(h.dtype)[None, :, None, :] + self.part_embedding
+        h = self.pe_drop(h)
+
+        emb = self.time_mlp(sinusoid(t, c.dim).to(h.dtype))
+        if self.length_mode is not None:
+            mode = torch.zeros(B, dtype=torch.long, device=z.device) if auto_length is None else auto_length.long()
+            emb = emb + self.length_mode(mode)
+
+        skips = []
+        for i, layer in enumerate(self.layers):
+            if i >= len(self.layers) - self.n_skip:
+                h = self.skip_proj[i - (len(self.layers) - self.n_skip)](torch.cat((h, skips.pop()), dim=-1))
+            h = layer(h, emb, text_tokens, text_mask, frame_mask)
+            if i < self.n_skip:
+                skips.append(h)
+        return self.output(h)

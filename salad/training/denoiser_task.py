@@ -1,0 +1,158 @@
+"""Training task for the latent denoiser.
+
+Each batch is either "fixed length" (motions of their own length, padded and masked
+in time) or "auto length" (every motion on the full canvas, followed by VAE-encoded
+padding whose activation channel is 0), chosen per batch. One model thus learns both
+to fill a requested duration and to decide a duration itself (MoLA). Latents come from
+the frozen VAE on the fly, so every crop is encoded exactly as it will be decoded.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from ..config import to_dict
+from ..data.dataset import MotionDataset
+from ..diffusion.schedule import NoiseSchedule
+from ..models.denoiser import Denoiser
+from ..models.io import load_vae, save_denoiser, vae_checksum
+from ..models.text import load_text_encoder
+from .configs import DenoiserTrainConfig
+
+
+class TextBank:
+    """Token features of every training caption, computed once (the encoder is frozen)."""
+
+    def __init__(self, encoder, captions: list[str], batch: int = 256, show: bool = True):
+        self.encoder = encoder
+        uniq = sorted(set(captions) | {""})
+        self.index = {c: i for i, c in enumerate(uniq)}
+        self.tokens: list[torch.Tensor] = []
+        self.pooled = torch.zeros(len(uniq), encoder.dim)
+        for s in tqdm(range(0, len(uniq), batch), desc="text features", disable=not show):
+            chunk = uniq[s:s + batch]
+            out = encoder.encode(chunk)
+            for k, cap in enumerate(chunk):
+                n = int(out.mask[k].sum())
+                self.tokens.append(out.tokens[k, :n].to(torch.bfloat16))
+            self.pooled[s:s + len(chunk)] = out.pooled.float()
+
+    def batch(self, captions: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        ids = [self.index[c] for c in captions]
+        L = max(self.tokens[i].shape[0] for i in ids)
+        tok = torch.zeros(len(ids), L, self.encoder.dim)
+        mask = torch.zeros(len(ids), L, dtype=torch.bool)
+        for b, i in enumerate(ids):
+            n = self.tokens[i].shape[0]
+            tok[b, :n] = self.tokens[i].float()
+            mask[b, :n] = True
+        return tok, mask, self.pooled[ids]
+
+
+class DenoiserTraining(nn.Module):
+    def __init__(self, denoiser: Denoiser, schedule: NoiseSchedule):
+        super().__init__()
+        self.denoiser = denoiser
+        self.schedule = schedule
+
+    def forward(self, batch: dict):
+        z0 = batch["latents"]
+        B = z0.shape[0]
+        t = batch["timesteps"]
+        noise = batch["noise"]
+        zt = self.schedule.add_noise(z0, noise, t)
+        pred = self.denoiser(zt, t, batch["text"], batch["text_mask"], batch["frame_mask"],
+                             pooled_text=batch["pooled"], auto_length=batch["auto"])
+        target = self.schedule.target(z0, noise, t)
+        err = F.mse_loss(pred.float(), target.float(), reduction="none").mean(dim=(2, 3))  # (B, T)
+        if batch["frame_mask"] is not None:
+            w = batch["frame_mask"].float()
+            loss = (err * w).sum() / w.sum().clamp_min(1.0)
+        else:
+            loss = err.mean()
+        return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}
+
+
+class DenoiserTask:
+    kind = "denoiser"
+
+    def __init__(self, cfg: DenoiserTrainConfig, show_progress: bool = True):
+        self.cfg = cfg
+        self.vae, self.normalizer, self.latent_scale, _ = load_vae(cfg.vae)
+        self.vae.requires_grad_(False)
+        self.vae_checksum = vae_checksum(cfg.vae)
+        d = cfg.data
+        self.dataset = MotionDataset(d.root, "train", min_frames=d.min_frames, max_frames=d.max_frames,
+                                     normalizer=self.normalizer)
+        self.canvas = (d.max_frames // 4) * 4
+        self.text_encoder = load_text_encoder(cfg.text_encoder)
+        if cfg.model.text_dim != self.text_encoder.dim:
+            raise ValueError(f"model.text_dim is {cfg.model.text_dim} but the {self.text_encoder.name} "
+                             f"text encoder gives {self.text_encoder.dim}-d features")
+        captions = [c for it in self.dataset.items for c in it.captions]
+        self.text = TextBank(self.text_encoder, captions, show=show_progress)
+        self.schedule = NoiseSchedule(cfg.diffusion)
+        torch.manual_seed(cfg.run.seed)
+        self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule)
+
+    # ------------------------------------------------------------ batches
+    @torch.no_grad()
+    def encode(self, feats: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        mu, logvar = self.vae.encode(feats, act)
+        z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
+        return z * self.latent_scale
+
+    def _crop(self, feats: np.ndarray, rng: np.random.Generator, max_len: int) -> np.ndarray:
+        if len(feats) > max_len:
+            s = int(rng.integers(0, len(feats) - max_len + 1))
+            feats = feats[s:s + max_len]
+        return feats[: (len(feats) // 4) * 4]
+
+    def batch(self, rng: np.random.Generator) -> dict:
+        B = self.cfg.optim.batch_size
+        idx = rng.integers(0, len(self.dataset), size=B)
+        items = [self.dataset.items[i] for i in idx]
+        auto = bool(rng.random() < self.cfg.auto_length_prob) if self.cfg.model.length_modes else False
+        crops = [self.normalizer.normalize(self._crop(it.features, rng, self.canvas)) for it in items]
+        if auto:
+            feats = torch.zeros(B, self.canvas, self.dataset.dim)
+            act = torch.zeros(B, self.canvas)
+            for b, c in enumerate(crops):
+                feats[b, :len(c)] = torch.from_numpy(c)
+                act[b, :len(c)] = 1.0
+            latents = self.encode(feats, act)
+            frame_mask = None
+        else:
+            lat = [self.encode(torch.from_numpy(c)[None], None)[0] for c in crops]
+            T = max(z.shape[0] for z in lat)
+            latents = torch.zeros(B, T, *lat[0].shape[1:])
+            frame_mask = torch.zeros(B, T, dtype=torch.bool)
+            for b, z in enumerate(lat):
+                latents[b, :z.shape[0]] = z
+                frame_mask[b, :z.shape[0]] = True
+        captions = [it.captions[int(rng.integers(len(it.captions)))] for it in items]
+        drop = rng.random(B) < self.cfg.text_dropout
+        captions = ["" if d else c for c, d in zip(captions, drop)]
+        text, text_mask, pooled = self.text.batch(captions)
+        g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+        return {"latents": latents, "frame_mask": frame_mask, "text": text, "text_mask": text_mask,
+                "pooled": pooled, "auto": torch.full((B,), auto),
+                "timesteps": torch.randint(0, self.schedule.config.train_steps, (B,), generator=g),
+                "noise": torch.randn(latents.shape, generator=g)}
+
+    def loss(self, model: nn.Module, batch: dict):
+        return model(batch)
+
+    def config_dict(self) -> dict:
+        return to_dict(self.cfg)
+
+    def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
+        save_denoiser(path, model.denoiser, self.schedule.config, self.text_encoder.spec(), self.canvas,
+                      self.vae_checksum, meta={**meta, "train_config": to_dict(self.cfg),
+                                               "latent_scale": self.latent_scale})

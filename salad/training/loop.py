@@ -1,0 +1,191 @@
+"""The training loop shared by every model: AdamW with warm-up and step decay, optional
+bf16 autocast, EMA, tqdm progress, periodic atomic checkpoints with exact resume, and
+multi-process data parallelism through torch.distributed (launched by torchrun)."""
+from __future__ import annotations
+
+import copy
+import json
+import os
+import random
+import time
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from tqdm import tqdm
+
+from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, save_checkpoint
+from .configs import OptimConfig, RunConfig
+
+STATE_DIR = "state"
+
+
+class Task(Protocol):
+    """What the loop needs from a model-specific task."""
+
+    model: torch.nn.Module
+    kind: str
+
+    def batch(self, rng: np.random.Generator) -> dict: ...
+    def loss(self, model: torch.nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]: ...
+    def export(self, model: torch.nn.Module, path: Path, meta: dict[str, Any]) -> None: ...
+    def config_dict(self) -> dict: ...
+
+
+def lr_factor(step: int, cfg: OptimConfig) -> float:
+    warm = min(1.0, (step + 1) / cfg.warmup_steps) if cfg.warmup_steps > 0 else 1.0
+    return warm * cfg.gamma ** sum(step >= m for m in cfg.milestones)
+
+
+def distributed_context() -> tuple[int, int]:
+    """(rank, world size); joins the process group when launched by torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("gloo")
+    if dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _flatten_optimizer(state: dict) -> tuple[dict[str, torch.Tensor], dict]:
+    tensors, scalars = {}, {}
+    for pid, entry in state["state"].items():
+        for key, value in entry.items():
+            if isinstance(value, torch.Tensor):
+                tensors[f"{pid}.{key}"] = value
+            else:
+                scalars[f"{pid}.{key}"] = value
+    return tensors, {"param_groups": state["param_groups"], "scalars": scalars}
+
+
+def _unflatten_optimizer(tensors: dict[str, torch.Tensor], doc: dict) -> dict:
+    state: dict[int, dict] = {}
+    for flat, value in list(tensors.items()) + list(doc["scalars"].items()):
+        pid, key = flat.split(".", 1)
+        state.setdefault(int(pid), {})[key] = value
+    return {"state": state, "param_groups": doc["param_groups"]}
+
+
+class Trainer:
+    def __init__(self, task: Task, optim: OptimConfig, run: RunConfig, ema_decay: float | None = None):
+        self.task, self.optim_cfg, self.run_cfg = task, optim, run
+        self.rank, self.world = distributed_context()
+        if run.threads:
+            torch.set_num_threads(run.threads)
+        self.out = Path(run.out_dir)
+        self.model = task.model
+        self.ema = copy.deepcopy(self.model).eval().requires_grad_(False) if ema_decay else None
+        self.ema_decay = ema_decay
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=optim.lr, betas=tuple(optim.betas),
+                                           weight_decay=optim.weight_decay)
+        self.step_count = 0
+        self.rng = np.random.default_rng(run.seed + 1000 * self.rank)
+        torch.manual_seed(run.seed + 1000 * self.rank)
+        random.seed(run.seed + 1000 * self.rank)
+        self.wrapped = self.model
+        if self.world > 1:
+            self.wrapped = torch.nn.parallel.DistributedDataParallel(self.model)
+        self.samples_seen = 0
+
+    # ------------------------------------------------------------ one step
+    def autocast(self):
+        if self.run_cfg.bf16:
+            return torch.autocast("cpu", dtype=torch.bfloat16)
+        return nullcontext()
+
+    def step(self, batch: dict) -> dict[str, float]:
+        self.model.train()
+        for g in self.optimizer.param_groups:
+            g["lr"] = self.optim_cfg.lr * lr_factor(self.step_count, self.optim_cfg)
+        with self.autocast():
+            loss, logs = self.task.loss(self.wrapped, batch)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"loss became {float(loss)} at step {self.step_count}")
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.optim_cfg.grad_clip > 0:
+            logs["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.optim_cfg.grad_clip))
+        self.optimizer.step()
+        if self.ema is not None:
+            with torch.no_grad():
+                d = min(self.ema_decay, (1 + self.step_count) / (10 + self.step_count))
+                for pe, pm in zip(self.ema.parameters(), self.model.parameters()):
+                    pe.lerp_(pm.detach(), 1 - d)
+        self.step_count += 1
+        logs["lr"] = self.optimizer.param_groups[0]["lr"]
+        return logs
+
+    # ------------------------------------------------------------ state
+    def save_state(self) -> None:
+        if self.rank != 0:
+            return
+        opt_tensors, opt_doc = _flatten_optimizer(self.optimizer.state_dict())
+        parts = {"model": self.model.state_dict(), "optimizer": opt_tensors,
+                 "rng": {"torch": torch.get_rng_state()}}
+        if self.ema is not None:
+            parts["ema"] = self.ema.state_dict()
+        meta = {"step": self.step_count, "optimizer": opt_doc, "numpy_rng": self.rng.bit_generator.state,
+                "python_rng": json.loads(json.dumps(random.getstate())), "samples_seen": self.samples_seen}
+        save_checkpoint(self.out / STATE_DIR, f"{self.task.kind}-train-state", self.task.config_dict(), parts, meta)
+
+    def try_resume(self) -> bool:
+        path = self.out / STATE_DIR
+        if not path.exists():
+            return False
+        doc, parts = load_checkpoint(path, kind=f"{self.task.kind}-train-state")
+        if doc["config"] != json.loads(json.dumps(self.task.config_dict())):
+            raise CheckpointError(f"{path}: was trained with a different config; use a new out_dir or the same config")
+        load_state_strict(self.model, parts["model"], str(path))
+        if self.ema is not None and "ema" in parts:
+            load_state_strict(self.ema, parts["ema"], str(path))
+        meta = doc["meta"]
+        self.optimizer.load_state_dict(_unflatten_optimizer(parts["optimizer"], meta["optimizer"]))
+        self.step_count = int(meta["step"])
+        self.samples_seen = int(meta.get("samples_seen", 0))
+        if self.rank == 0:
+            torch.set_rng_state(parts["rng"]["torch"])
+            self.rng.bit_generator.state = meta["numpy_rng"]
+            state = meta["python_rng"]
+            random.setstate((state[0], tuple(state[1]), state[2]))
+        return True
+
+    # ------------------------------------------------------------ the loop
+    def fit(self) -> Path:
+        resumed = self.try_resume()
+        total = self.optim_cfg.max_steps
+        log_file = self.out / "log.jsonl"
+        if self.rank == 0:
+            self.out.mkdir(parents=True, exist_ok=True)
+            if resumed:
+                tqdm.write(f"resumed {self.out} at step {self.step_count}")
+        bar = tqdm(total=total, initial=self.step_count, disable=self.rank != 0, dynamic_ncols=True,
+                   desc=self.task.kind)
+        t0, n0 = time.time(), 0
+        while self.step_count < total:
+            batch = self.task.batch(self.rng)
+            logs = self.step(batch)
+            n = self.optim_cfg.batch_size * self.world
+            self.samples_seen += n
+            n0 += n
+            bar.update(1)
+            if self.step_count % self.run_cfg.log_every == 0 or self.step_count == total:
+                rate = n0 / max(time.time() - t0, 1e-9)
+                t0, n0 = time.time(), 0
+                bar.set_postfix(loss=f"{logs['loss']:.4f}", samples_s=f"{rate:.1f}")
+                if self.rank == 0:
+                    with open(log_file, "a") as f:
+                        f.write(json.dumps({"step": self.step_count, "samples_per_s": round(rate, 2),
+                                            "time": time.time(), **logs}) + "\n")
+            if self.step_count % self.run_cfg.checkpoint_every == 0 or self.step_count == total:
+                self.save_state()
+                if self.rank == 0:
+                    self.task.export(self.ema or self.model, self.out / "model",
+                                     {"step": self.step_count, "samples_seen": self.samples_seen})
+        bar.close()
+        if dist.is_initialized():
+            dist.barrier()
+        return self.out / "model"

@@ -1,0 +1,66 @@
+"""Training task for the skeleto-temporal VAE."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from ..config import to_dict
+from ..data.dataset import MotionDataset, WindowSampler
+from ..models.vae import MotionVAE
+from ..models.io import save_vae
+from .configs import VAETrainConfig
+
+
+class VAETraining(nn.Module):
+    """forward(batch) -> (loss, logs); wrapping the loss in forward lets DDP sync gradients."""
+
+    def __init__(self, vae: MotionVAE):
+        super().__init__()
+        self.vae = vae
+
+    def forward(self, batch: dict):
+        act = batch["activation"]
+        total, logs, _, _ = self.vae.loss(batch["features"], act, valid=act > 0.5)
+        logs["loss"] = logs.pop("total")
+        return total, logs
+
+
+class VAETask:
+    kind = "vae"
+
+    def __init__(self, cfg: VAETrainConfig, dataset: MotionDataset | None = None):
+        self.cfg = cfg
+        self.dataset = dataset or MotionDataset(cfg.data.root, "train", min_frames=cfg.data.min_frames,
+                                                max_frames=10 ** 9)
+        self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang)
+        torch.manual_seed(cfg.run.seed)
+        self.model = VAETraining(MotionVAE(cfg.model))
+
+    def batch(self, rng: np.random.Generator) -> dict:
+        return self.sampler.batch(self.cfg.optim.batch_size, rng)
+
+    def loss(self, model: nn.Module, batch: dict):
+        return model(batch)
+
+    def config_dict(self) -> dict:
+        return to_dict(self.cfg)
+
+    @torch.no_grad()
+    def latent_scale(self, vae: MotionVAE, n: int = 512) -> float:
+        """1 / std of the latent means over training windows, so diffusion sees unit-scale latents."""
+        vae.eval()
+        b = WindowSampler(self.dataset, self.cfg.data.window, 0.0).batch(n, np.random.default_rng(1234))
+        mu, _ = vae.encode(b["features"], b["activation"])
+        return float(1.0 / mu.float().std().clamp_min(1e-6))
+
+    def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
+        vae = model.vae
+        was_training = vae.training
+        scale = self.latent_scale(vae)
+        vae.train(was_training)
+        save_vae(path, vae, self.dataset.normalizer, latent_scale=scale,
+                 meta={**meta, "train_config": to_dict(self.cfg)})
