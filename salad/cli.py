@@ -73,6 +73,8 @@ def _override(cfg, a) -> None:
         cfg.optim.max_steps = a.max_steps
     if a.data:
         cfg.data.root = a.data
+    if a.threads:
+        cfg.run.threads = a.threads
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -98,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out-dir", help="override run.out_dir")
     t.add_argument("--data", help="override data.root")
     t.add_argument("--max-steps", type=int, help="override optim.max_steps")
+    t.add_argument("--threads", type=int, help="override run.threads (CPU threads for this process)")
     t.set_defaults(func=cmd_train)
     return p
 

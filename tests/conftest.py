@@ -70,3 +70,40 @@ def synthetic_walk(frames: int = 60, seed: int = 0, speed: float = 1.2, turn: fl
     j = forward_kinematics(torch.from_numpy(quats), torch.from_numpy(root), offsets).numpy()
     j[..., 1] -= j[..., 1].min()
     return j.astype(np.float32)
+
+
+def write_tiny_dataset(root: Path, n: int = 12, frames: int = 72) -> Path:
+    """A HumanML3D-layout directory of synthetic walks (straight, turning, mirrored)
+    with captions, splits and statistics."""
+    from salad.data.captions import caption_line
+    from salad.motion import representation as rep
+
+    root = Path(root)
+    for sub in ("new_joint_vecs", "new_joints", "texts"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    names, feats = [], []
+    for i in range(n):
+        turn = (-0.6, 0.0, 0.6)[i % 3]
+        speed = 0.8 + 0.1 * (i % 4)
+        j = rep.canonicalize(synthetic_walk(frames + 1 + 4 * (i % 3), seed=i, speed=speed, turn=turn).astype(np.float64))
+        f = rep.joints_to_features(j).astype(np.float32)
+        name = f"{i:06d}"
+        np.save(root / "new_joint_vecs" / f"{name}.npy", f)
+        np.save(root / "new_joints" / f"{name}.npy", rep.features_to_joints(f).astype(np.float32))
+        what = {-0.6: "turns right while walking", 0.0: "walks forward", 0.6: "turns left while walking"}[turn]
+        caps = [f"a person {what}", f"someone {what} at {speed:.1f} metres per second"]
+        (root / "texts" / f"{name}.txt").write_text("\n".join(caption_line(c) for c in caps) + "\n")
+        names.append(name)
+        feats.append(f)
+    (root / "train.txt").write_text("\n".join(names[: n - 4]) + "\n")
+    (root / "val.txt").write_text("\n".join(names[n - 4: n - 2]) + "\n")
+    (root / "test.txt").write_text("\n".join(names[n - 2:]) + "\n")
+    mean, std = rep.feature_statistics(np.concatenate(feats[: n - 4]))
+    np.save(root / "Mean.npy", mean)
+    np.save(root / "Std.npy", std)
+    return root
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    return write_tiny_dataset(tmp_path_factory.mktemp("tiny-hml"))

@@ -186,17 +186,22 @@ class MotionVAE(nn.Module):
             parts[0] = parts[0][..., :-1]
         return rep.merge_joints(parts), act
 
-    def forward(self, x, activation=None, sample: bool = True):
+    def forward(self, x, activation=None, sample: bool = True, eps: torch.Tensor | None = None):
+        """eps: the reparameterisation noise, (B, T/4, 7, D); drawn here when not given."""
         mu, logvar = self.encode(x, activation)
-        z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if sample else mu
+        if sample:
+            eps = torch.randn_like(mu) if eps is None else eps.to(mu.dtype)
+            z = mu + eps * torch.exp(0.5 * logvar)
+        else:
+            z = mu
         recon, act_logits = self.decode(z)
         return recon, act_logits, mu, logvar
 
-    def loss(self, x, activation=None, valid=None):
+    def loss(self, x, activation=None, valid=None, eps=None):
         """SmoothL1 reconstruction in normalised space (+ ric and velocity terms), KL, and
         BCE on the activation logits. `valid` (B, T) masks frames after a motion's end
         out of the feature terms; the activation term sees every frame."""
-        recon, act_logits, mu, logvar = self(x, activation)
+        recon, act_logits, mu, logvar = self(x, activation, eps=eps)
         c = self.config
         if valid is None:
             valid = torch.ones(x.shape[:2], dtype=torch.bool, device=x.device)

@@ -7,6 +7,7 @@ import copy
 import json
 import os
 import random
+import sys
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -137,8 +138,21 @@ class Trainer:
         if not path.exists():
             return False
         doc, parts = load_checkpoint(path, kind=f"{self.task.kind}-train-state")
-        if doc["config"] != json.loads(json.dumps(self.task.config_dict())):
-            raise CheckpointError(f"{path}: was trained with a different config; use a new out_dir or the same config")
+        # Run settings (threads, logging, checkpoint cadence) may change between sessions, and
+        # anything that shapes the model, data or optimisation may not.
+        # max_steps may grow to train longer.
+        def comparable(cfg: dict) -> dict:
+            cfg = {k: v for k, v in cfg.items() if k != "run"}
+            if isinstance(cfg.get("optim"), dict):
+                cfg["optim"] = {k: v for k, v in cfg["optim"].items() if k != "max_steps"}
+            return cfg
+
+        mine = comparable(json.loads(json.dumps(self.task.config_dict())))
+        theirs = comparable(doc["config"])
+        if mine != theirs:
+            changed = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+            raise CheckpointError(f"{path}: was trained with a different config (differs in {changed}); "
+                                  "use a new out_dir or the same config")
         load_state_strict(self.model, parts["model"], str(path))
         if self.ema is not None and "ema" in parts:
             load_state_strict(self.ema, parts["ema"], str(path))
@@ -161,7 +175,7 @@ class Trainer:
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
             if resumed:
-                tqdm.write(f"resumed {self.out} at step {self.step_count}")
+                tqdm.write(f"resumed {self.out} at step {self.step_count}", file=sys.stderr)
         bar = tqdm(total=total, initial=self.step_count, disable=self.rank != 0, dynamic_ncols=True,
                    desc=self.task.kind)
         t0, n0 = time.time(), 0

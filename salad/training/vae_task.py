@@ -24,7 +24,7 @@ class VAETraining(nn.Module):
 
     def forward(self, batch: dict):
         act = batch["activation"]
-        total, logs, _, _ = self.vae.loss(batch["features"], act, valid=act > 0.5)
+        total, logs, _, _ = self.vae.loss(batch["features"], act, valid=act > 0.5, eps=batch["eps"])
         logs["loss"] = logs.pop("total")
         return total, logs
 
@@ -41,7 +41,13 @@ class VAETask:
         self.model = VAETraining(MotionVAE(cfg.model))
 
     def batch(self, rng: np.random.Generator) -> dict:
-        return self.sampler.batch(self.cfg.optim.batch_size, rng)
+        b = self.sampler.batch(self.cfg.optim.batch_size, rng)
+        B, T = b["activation"].shape
+        # The reparameterisation noise belongs to the batch, so a step is a pure function
+        # of it (exact resume, and DDP shards that add up to the single-process step).
+        g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+        b["eps"] = torch.randn(B, T // 4, 7, self.cfg.model.latent_dim, generator=g)
+        return b
 
     def loss(self, model: nn.Module, batch: dict):
         return model(batch)

@@ -1,0 +1,127 @@
+"""Capture of cross-attention maps during generation, with bounded memory.
+
+The store keeps, for the chosen rows of the batch, the head-averaged cross-attention
+of every (diffusion step, layer) it is asked to watch, at latent resolution
+(T/4 frames x 7 body parts x text tokens) in float16: a few MB for a 10 s motion,
+independent of the number of heads and never the full per-head, per-query maps.
+Afterwards any layer subset and step range can be aggregated without re-running.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..models.attention import CROSS, AttentionCall
+
+
+@dataclass
+class AttentionMaps:
+    """Cross-attention of one generated motion, words x body parts x time.
+
+    data: (steps, layers, words, 7, latent frames) float32, head-averaged, sub-word
+    tokens summed into their word.
+    """
+
+    words: list[str]
+    data: np.ndarray
+    frames: int
+    layers: list[int]
+
+    @property
+    def steps(self) -> int:
+        return self.data.shape[0]
+
+    def aggregate(self, layers: list[int] | None = None, steps: tuple[int, int] | None = None,
+                  at_latent_rate: bool = False) -> np.ndarray:
+        """Mean over the chosen layers and step range [start, stop) -> (words, 7, frames)."""
+        lsel = [self.layers.index(l) for l in layers] if layers is not None else slice(None)
+        s0, s1 = steps if steps is not None else (0, self.steps)
+        if not 0 <= s0 < s1 <= self.steps:
+            raise ValueError(f"step range must satisfy 0 <= start < stop <= {self.steps}, got {steps}")
+        m = self.data[s0:s1][:, lsel].mean(axis=(0, 1))
+        return m if at_latent_rate else to_motion_rate(m, self.frames)
+
+    def word(self, word: str | int, **kw) -> np.ndarray:
+        """(7, frames) map of one word, by index or by text (first occurrence)."""
+        i = word if isinstance(word, int) else self.words.index(word)
+        return self.aggregate(**kw)[i]
+
+
+def to_motion_rate(m: np.ndarray, frames: int) -> np.ndarray:
+    """Latent frames (..., T') -> motion frames (..., frames): latent frame k covers motion
+    frames 4k..4k+3, so values are interpolated at those frames' centres."""
+    Tl = m.shape[-1]
+    centres = (np.arange(frames) + 0.5) / 4.0 - 0.5
+    centres = np.clip(centres, 0, Tl - 1)
+    lo = np.floor(centres).astype(int)
+    hi = np.minimum(lo + 1, Tl - 1)
+    w = centres - lo
+    return m[..., lo] * (1 - w) + m[..., hi] * w
+
+
+class AttentionStore:
+    """A controller that observes (and never changes) cross-attention maps.
+
+    rows: which batch rows (of the batched CFG forward) to keep, e.g. the conditional
+    ones; layers / steps restrict what is captured.
+    """
+
+    def __init__(self, text, rows: slice, frames: int, layers: list[int] | None = None,
+                 steps: tuple[int, int] | None = None):
+        self.text, self.rows, self.frames = text, rows, frames
+        self.layer_filter = set(layers) if layers is not None else None
+        self.step_range = steps
+        self.step = -1
+        self._first_layer = None
+        self._current: dict[int, torch.Tensor] = {}
+        self.captured: list[dict[int, torch.Tensor]] = []
+
+    def __call__(self, call: AttentionCall) -> torch.Tensor:
+        if call.kind != CROSS:
+            return call.probs
+        if self._first_layer is None:
+            self._first_layer = call.layer
+        if call.layer == self._first_layer:
+            self._flush()
+            self.step += 1
+        if self.layer_filter is not None and call.layer not in self.layer_filter:
+            return call.probs
+        if self.step_range is not None and not self.step_range[0] <= self.step < self.step_range[1]:
+            return call.probs
+        p = call.probs[self.rows].float().mean(dim=1)          # (b, T*J, L), head mean
+        b, q, L = p.shape
+        self._current[call.layer] = p.reshape(b, call.frames, call.parts, L).to(torch.float16)
+        return call.probs
+
+    def _flush(self) -> None:
+        if self._current:
+            self.captured.append(self._current)
+            self._current = {}
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for d in self.captured + [self._current] for t in d.values())
+
+    def maps(self, row: int, frames: int | None = None) -> AttentionMaps:
+        """Word-level maps of one motion of the batch (row index within `rows`)."""
+        self._flush()
+        if not self.captured:
+            raise RuntimeError("no attention was captured")
+        layers = sorted(self.captured[0])
+        text_row = range(self.text.tokens.shape[0])[self.rows][row]
+        words = self.text.words[text_row]
+        tw = self.text.token_words[text_row]                      # (L,) word index or -1
+        L = tw.shape[0]
+        merge = torch.zeros(L, max(len(words), 1))
+        for k in range(L):
+            if tw[k] >= 0:
+                merge[k, tw[k]] = 1.0
+        data = np.zeros((len(self.captured), len(layers), len(words), 7, self.captured[0][layers[0]].shape[1]),
+                        dtype=np.float32)
+        for s, per_layer in enumerate(self.captured):
+            for li, layer in enumerate(layers):
+                m = per_layer[layer][row].float()                 # (T', J, L)
+                w = m[..., :L] @ merge                            # (T', J, words)
+                data[s, li] = w.permute(2, 1, 0).numpy()[: len(words)]
+        return AttentionMaps(words=list(words), data=data, frames=frames or self.frames, layers=layers)

@@ -1,0 +1,67 @@
+"""The Motion value returned by every generator, and how it is saved."""
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .representation import FPS
+
+
+@dataclass
+class Motion:
+    """A motion: joints (T, 22, 3) in metres, Y-up, and its 263-d features (T, 263), at `fps`."""
+
+    joints: np.ndarray
+    features: np.ndarray
+    fps: int = FPS
+    text: str = ""
+    seed: int | None = None
+    attention: Any = None            # AttentionMaps when generated with return_attention=True
+    info: dict = field(default_factory=dict)
+
+    @property
+    def frames(self) -> int:
+        return int(self.joints.shape[0])
+
+    @property
+    def seconds(self) -> float:
+        return self.frames / self.fps
+
+    def save(self, path: str | Path) -> Path:
+        """Write by extension: .npy (joints), .npz (joints + features), .bvh, .mp4, .gif."""
+        path = Path(path)
+        ext = path.suffix.lower()
+        if ext == ".npy":
+            _atomic_np(path, lambda f: np.save(f, self.joints.astype(np.float32)))
+        elif ext == ".npz":
+            _atomic_np(path, lambda f: np.savez(f, joints=self.joints.astype(np.float32),
+                                                features=self.features.astype(np.float32), fps=self.fps))
+        elif ext == ".bvh":
+            from .bvh import save_bvh
+            save_bvh(path, self.joints, fps=self.fps)
+        elif ext == ".mp4":
+            from ..render import render_video
+            render_video(self.joints, path, fps=self.fps, title=self.text or None)
+        elif ext == ".gif":
+            from ..render import save_gif
+            save_gif(self.joints, path, fps=self.fps, title=self.text or None)
+        else:
+            raise ValueError(f"{path}: unsupported output type {ext!r}; use .npy, .npz, .bvh, .mp4 or .gif")
+        return path
+
+
+def _atomic_np(path: Path, write) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

@@ -1,0 +1,190 @@
+"""The one public entry point: load_pipeline() -> Pipeline with generate / edit / control.
+
+Data flows one way: prompt -> text encoder -> denoiser (with optional attention
+controllers) -> diffusion sampler -> VAE decoder -> features -> joints.
+"""
+from __future__ import annotations
+
+import math
+import os
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from .checkpoint import CheckpointError
+from .diffusion.sampling import sample
+from .diffusion.schedule import SAMPLERS, DiffusionConfig, NoiseSchedule
+from .config import from_dict
+from .models.denoiser import Denoiser
+from .models.io import load_denoiser, load_vae, vae_checksum
+from .models.text import TextEncoder, load_text_encoder
+from .models.vae import MotionVAE
+from .motion.motion import Motion
+from .motion.representation import FPS, Normalizer, features_to_joints
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+EMBEDDED_MODEL = REPO_ROOT / "assets" / "model"
+MAX_PROMPT_CHARS = 300
+ACTIVATION_THRESHOLD = 0.5
+MIN_AUTO_FRAMES = 16
+
+Progress = Callable[[int, int], None]
+
+
+def bf16_supported() -> bool:
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
+class Pipeline:
+    def __init__(self, vae: MotionVAE, normalizer: Normalizer, latent_scale: float, denoiser: Denoiser,
+                 text_encoder: TextEncoder, schedule: NoiseSchedule, canvas_frames: int, bf16: bool = True,
+                 source: str = ""):
+        self.vae, self.normalizer, self.latent_scale = vae.eval(), normalizer, latent_scale
+        self.denoiser, self.text_encoder, self.schedule = denoiser.eval(), text_encoder, schedule
+        self.canvas_frames = canvas_frames
+        self.bf16 = bf16 and bf16_supported()
+        self.source = source
+
+    # ------------------------------------------------------------ validation
+    @property
+    def max_seconds(self) -> float:
+        return self.canvas_frames / FPS
+
+    def check_prompt(self, prompt) -> str:
+        if not isinstance(prompt, str):
+            raise ValueError(f"prompt must be a string, got {type(prompt).__name__}")
+        p = " ".join(prompt.split())
+        if not p:
+            raise ValueError("prompt is empty: describe the motion, e.g. 'a person walks forward'")
+        if len(p) > MAX_PROMPT_CHARS:
+            raise ValueError(f"prompt is {len(p)} characters long; the limit is {MAX_PROMPT_CHARS}")
+        return p
+
+    def frames_for(self, seconds) -> int | None:
+        """Requested duration -> frame count (a multiple of 4), or None for auto length."""
+        if seconds is None or (isinstance(seconds, str) and seconds.lower() == "auto"):
+            return None
+        try:
+            s = float(seconds)
+        except (TypeError, ValueError):
+            raise ValueError(f"seconds must be a number or 'auto', got {seconds!r}") from None
+        lo, hi = MIN_AUTO_FRAMES / FPS, self.max_seconds
+        if not math.isfinite(s) or not lo <= s <= hi:
+            raise ValueError(f"seconds must be between {lo:g} and {hi:g}, got {seconds!r}")
+        return max(MIN_AUTO_FRAMES, int(round(s * FPS / 4)) * 4)
+
+    @staticmethod
+    def check_sampling(steps, cfg, sampler, batch=1) -> tuple[int, float, str, int]:
+        if sampler not in SAMPLERS:
+            raise ValueError(f"sampler must be one of {', '.join(SAMPLERS)}, got {sampler!r}")
+        if not isinstance(steps, (int, np.integer)) or not 1 <= steps <= 1000:
+            raise ValueError(f"steps must be an integer in 1..1000, got {steps!r}")
+        if not isinstance(cfg, (int, float)) or not math.isfinite(cfg) or not 0 <= cfg <= 30:
+            raise ValueError(f"cfg must be a number in 0..30, got {cfg!r}")
+        if not isinstance(batch, (int, np.integer)) or not 1 <= batch <= 64:
+            raise ValueError(f"batch must be an integer in 1..64, got {batch!r}")
+        return int(steps), float(cfg), sampler, int(batch)
+
+    # ------------------------------------------------------------ building blocks
+    def autocast(self):
+        return torch.autocast("cpu", dtype=torch.bfloat16) if self.bf16 else nullcontext()
+
+    def encode_text(self, prompts: list[str]):
+        """Token features for `prompts`, padded together (cached per prompt by the encoder)."""
+        return self.text_encoder.encode(prompts)
+
+    def noise(self, batch: int, frames: int, seed: int) -> torch.Tensor:
+        g = torch.Generator().manual_seed(int(seed))
+        c = self.denoiser.config
+        return torch.randn(batch, frames // 4, c.parts, c.latent_dim, generator=g)
+
+    def model_fn(self, text, auto: bool):
+        """The denoiser as the sampler sees it: rows are [unconditional..., conditional...]."""
+        def fn(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            with self.autocast():
+                flags = torch.full((x.shape[0],), auto)
+                return self.denoiser(x, t, text.tokens, text.mask, None, pooled_text=text.pooled,
+                                     auto_length=flags).float()
+        return fn
+
+    @torch.no_grad()
+    def decode(self, latents: torch.Tensor, frames: int | None, texts: list[str], seed: int) -> list[Motion]:
+        """Latents -> motions; with frames=None each motion ends where its activation drops."""
+        feats, act_logits = self.vae.decode(latents / self.latent_scale)
+        feats = self.normalizer.denormalize(feats.float()).numpy()
+        out = []
+        for b in range(latents.shape[0]):
+            n = feats.shape[1]
+            if frames is None and act_logits is not None:
+                n = end_of_motion(torch.sigmoid(act_logits[b]).numpy())
+            f = feats[b, :n]
+            out.append(Motion(joints=features_to_joints(f), features=f, text=texts[b], seed=seed,
+                              info={"auto_length": frames is None}))
+        return out
+
+    # ------------------------------------------------------------ generation
+    def generate(self, prompt: str, seconds: float | str | None = None, seed: int = 0, steps: int = 50,
+                 cfg: float = 7.5, sampler: str = "ddim", batch: int = 1, return_attention: bool = False,
+                 progress: Progress | None = None):
+        """Text -> Motion (or a list of `batch` motions). seconds=None lets the model choose the length."""
+        prompt = self.check_prompt(prompt)
+        frames = self.frames_for(seconds)
+        steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
+        canvas = frames or self.canvas_frames
+        text = self.encode_text([""] * batch + [prompt] * batch)
+        store = None
+        if return_attention:
+            from .editing.store import AttentionStore
+            store = AttentionStore(text, rows=slice(batch, 2 * batch), frames=canvas)
+            self.denoiser.set_controller(store)
+        try:
+            on_step = (lambda i, n, x: progress(i, n)) if progress else None
+            z = sample(self.model_fn(text, auto=frames is None), self.noise(batch, canvas, seed), self.schedule,
+                       sampler=sampler, steps=steps, cfg_scale=cfg, on_step=on_step)
+        finally:
+            self.denoiser.set_controller(None)
+        motions = self.decode(z, frames, [prompt] * batch, seed)
+        if store is not None:
+            for b, m in enumerate(motions):
+                m.attention = store.maps(b, frames=m.frames)
+        return motions[0] if batch == 1 else motions
+
+
+def end_of_motion(activation: np.ndarray, threshold: float = ACTIVATION_THRESHOLD) -> int:
+    """Frames up to the first drop of the activation below `threshold` (at least
+    MIN_AUTO_FRAMES, rounded down to a multiple of 4)."""
+    below = np.flatnonzero(activation[MIN_AUTO_FRAMES:] < threshold)
+    n = MIN_AUTO_FRAMES + int(below[0]) if below.size else len(activation)
+    return max(MIN_AUTO_FRAMES, (n // 4) * 4)
+
+
+def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text_encoder: str | dict | None = None,
+                  threads: int | None = None) -> Pipeline:
+    """Load a model directory holding `vae/` and `denoiser/` checkpoints. path=None means the
+    embedded model in assets/model (or $SALAD_MODEL)."""
+    if threads:
+        torch.set_num_threads(threads)
+    root = Path(path or os.environ.get("SALAD_MODEL") or EMBEDDED_MODEL)
+    if not (root / "vae").is_dir() or not (root / "denoiser").is_dir():
+        where = "the embedded model" if path is None else str(root)
+        raise CheckpointError(
+            f"{where} was not found at {root}: expected {root}/vae and {root}/denoiser checkpoint directories "
+            "(train them with `salad train vae` and `salad train denoiser`, see README)")
+    vae, norm, scale, _ = load_vae(root / "vae")
+    denoiser, doc = load_denoiser(root / "denoiser")
+    cfg = doc["config"]
+    if cfg.get("vae_checksum") and cfg["vae_checksum"] != vae_checksum(root / "vae"):
+        raise CheckpointError(f"{root}: the denoiser was trained on a different VAE than {root / 'vae'}")
+    encoder = load_text_encoder(text_encoder or cfg["text_encoder"])
+    if encoder.dim != denoiser.config.text_dim:
+        raise CheckpointError(f"{root}: the denoiser expects {denoiser.config.text_dim}-d text features but the "
+                              f"{encoder.name} encoder gives {encoder.dim}")
+    schedule = NoiseSchedule(from_dict(DiffusionConfig, cfg["diffusion"]))
+    return Pipeline(vae, norm, scale, denoiser, encoder, schedule, int(cfg["canvas_frames"]), bf16=bf16,
+                    source=str(root))

@@ -1,0 +1,235 @@
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from salad.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from salad.diffusion.sampling import sample
+from salad.diffusion.schedule import NoiseSchedule
+from salad.models.attention import AttentionCall
+from salad.models.denoiser import Denoiser, DenoiserConfig
+from salad.models.io import load_denoiser, load_vae, save_denoiser, save_vae
+from salad.models.vae import MotionVAE, VAEConfig
+from salad.motion.representation import Normalizer
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def n_params(m):
+    return sum(p.numel() for p in m.parameters() if p.requires_grad)
+
+
+def tiny_denoiser(**kw):
+    cfg = dict(dim=32, heads=4, ff_dim=64, layers=3, dropout=0.0, text_dim=16)
+    cfg.update(kw)
+    return Denoiser(DenoiserConfig(**cfg))
+
+
+def test_paper_configs_shapes_and_parameter_counts():
+    vae = MotionVAE(VAEConfig(activation_channel=False))
+    assert n_params(vae) == 162_503                      # SALAD's VAE, ~0.16M
+    x = torch.randn(2, 64, 263)
+    mu, logvar = vae.encode(x)
+    assert mu.shape == logvar.shape == (2, 16, 7, 32)
+    recon, act = vae.decode(mu)
+    assert recon.shape == x.shape and act is None
+    with pytest.raises(ValueError, match="divisible by 4"):
+        vae.encode(torch.randn(1, 30, 263))
+
+    den = Denoiser(DenoiserConfig(text_dim=512, length_modes=False))
+    assert abs(n_params(den) - 9.9e6) / 9.9e6 < 0.01     # ~9.9M with a 512-d text encoder
+    out = den(torch.randn(2, 16, 7, 32), torch.tensor([10, 900]), torch.randn(2, 5, 512),
+              torch.ones(2, 5, dtype=torch.bool))
+    assert out.shape == (2, 16, 7, 32)
+
+    with_act = MotionVAE(VAEConfig())
+    _, act = with_act.decode(with_act.encode(x)[0])
+    assert act.shape == (2, 64)
+
+
+def test_controller_path_matches_fused_attention_and_sees_every_map():
+    torch.manual_seed(0)
+    den = tiny_denoiser().eval()
+    z, t = torch.randn(2, 6, 7, 32), torch.tensor([3, 700])
+    text, mask = torch.randn(2, 4, 16), torch.tensor([[1, 1, 1, 0], [1, 1, 1, 1]], dtype=torch.bool)
+    frame_mask = torch.tensor([[1] * 6, [1] * 4 + [0] * 2], dtype=torch.bool)
+    fused = den(z, t, text, mask, frame_mask)
+    seen = []
+
+    def observe(call: AttentionCall):
+        seen.append((call.kind, call.layer, tuple(call.probs.shape)))
+        torch.testing.assert_close(call.probs.sum(-1), torch.ones_like(call.probs.sum(-1)))
+        return call.probs
+
+    den.set_controller(observe)
+    controlled = den(z, t, text, mask, frame_mask)
+    den.set_controller(None)
+    torch.testing.assert_close(controlled, fused, atol=1e-5, rtol=1e-5)
+    kinds = {(k, l): s for k, l, s in seen}
+    assert kinds[("temporal", 0)] == (2 * 7, 4, 6, 6)
+    assert kinds[("skeletal", 2)] == (2 * 6, 4, 7, 7)
+    assert kinds[("cross", 1)] == (2, 4, 6 * 7, 4)
+    assert len(seen) == 9
+
+
+def test_controller_can_replace_maps():
+    torch.manual_seed(0)
+    den = tiny_denoiser().eval()
+    z, t, text = torch.randn(1, 4, 7, 32), torch.tensor([500]), torch.randn(1, 3, 16)
+    base = den(z, t, text)
+
+    def uniform(call):
+        return torch.full_like(call.probs, 1.0 / call.probs.shape[-1]) if call.kind == "cross" else call.probs
+
+    den.set_controller(uniform)
+    changed = den(z, t, text)
+    den.set_controller(None)
+    assert (changed - base).abs().max() > 1e-4
+
+
+def test_x0_eps_v_conversions_are_exact():
+    s = NoiseSchedule()
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.randn(8, 5, 7, 4, generator=g, dtype=torch.float64)
+    eps = torch.randn(8, 5, 7, 4, generator=g, dtype=torch.float64)
+    t = torch.tensor([0, 1, 10, 250, 500, 750, 990, 999])
+    xt = s.add_noise(x0, eps, t)
+    v = s.target(x0, eps, t)
+    x0_hat, eps_hat = s.to_x0_eps(xt, v, t)
+    torch.testing.assert_close(x0_hat, x0, atol=1e-10, rtol=0)
+    torch.testing.assert_close(eps_hat, eps, atol=1e-10, rtol=0)
+    torch.testing.assert_close(s.from_x0_eps(x0, eps, t), v, atol=1e-12, rtol=0)
+    # diffusers agrees on the velocity
+    ref = s.train_scheduler.get_velocity(x0, eps, t)
+    torch.testing.assert_close(ref, v, atol=1e-6, rtol=1e-6)
+
+
+def _toy_model(den, text, mask):
+    def fn(x, t):
+        return den(x, t, text, mask)
+    return fn
+
+
+def test_cfg_scale_one_equals_conditional_and_ddim_is_deterministic():
+    torch.manual_seed(0)
+    den = tiny_denoiser().eval()
+    s = NoiseSchedule()
+    noise = torch.randn(1, 4, 7, 32, generator=torch.Generator().manual_seed(3))
+    uncond, cond = torch.randn(1, 3, 16), torch.randn(1, 3, 16)
+    both = torch.cat((uncond, cond))
+    a = sample(_toy_model(den, both, None), noise, s, steps=8, cfg_scale=1.0)
+    cond_only = sample(lambda x, t: den(x[1:], t[1:], cond).repeat(2, 1, 1, 1), noise, s, steps=8, cfg_scale=1.0)
+    torch.testing.assert_close(a, cond_only, atol=1e-5, rtol=1e-5)
+    b = sample(_toy_model(den, both, None), noise, s, steps=8, cfg_scale=7.5)
+    c = sample(_toy_model(den, both, None), noise, s, steps=8, cfg_scale=7.5)
+    assert torch.equal(b, c)
+    assert not torch.allclose(a, b)
+    d = sample(_toy_model(den, both, None), noise, s, sampler="dpm", steps=8, cfg_scale=7.5)
+    assert torch.isfinite(d).all()
+
+
+def test_tiny_models_overfit_a_tiny_batch():
+    torch.manual_seed(0)
+    from salad.motion import representation as rep
+    from tests.conftest import synthetic_walk
+    vae = MotionVAE(VAEConfig(dropout=0.0, lambda_kl=1e-4))
+    walks = [rep.joints_to_features(rep.canonicalize(synthetic_walk(33, seed=i, turn=0.3 * i))) for i in range(4)]
+    f = np.stack(walks)
+    x = torch.from_numpy((f - f.mean((0, 1))) / (f.std((0, 1)) + 0.1)).float()
+    opt = torch.optim.Adam(vae.parameters(), lr=3e-3)
+    first = None
+    t0 = time.time()
+    for step in range(300):
+        loss, _, _, _ = vae.loss(x)
+        first = first if first is not None else float(loss.detach())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(loss) < first / 10, (first, float(loss))
+    assert time.time() - t0 < 60
+
+    den = tiny_denoiser()
+    s = NoiseSchedule()
+    z0, noise = torch.randn(4, 4, 7, 32), torch.randn(4, 4, 7, 32)
+    t = torch.tensor([100, 300, 600, 900])
+    text = torch.randn(4, 3, 16)
+    opt = torch.optim.Adam(den.parameters(), lr=2e-3)
+    target = s.target(z0, noise, t)
+    losses = []
+    for step in range(300):
+        loss = torch.nn.functional.mse_loss(den(s.add_noise(z0, noise, t), t, text), target)
+        losses.append(float(loss))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert losses[-1] < losses[0] / 10
+
+
+def test_checkpoint_round_trip_is_bit_exact_and_bad_ones_fail_clearly(tmp_path):
+    torch.manual_seed(0)
+    vae = MotionVAE()
+    norm = Normalizer(np.random.rand(263).astype(np.float32), np.random.rand(263).astype(np.float32) + 0.1)
+    save_vae(tmp_path / "vae", vae, norm, latent_scale=1.7)
+    vae2, norm2, scale, _ = load_vae(tmp_path / "vae")
+    for (k, a), (_, b) in zip(vae.state_dict().items(), vae2.state_dict().items()):
+        assert torch.equal(a, b), k
+    assert np.array_equal(norm.mean, norm2.mean) and scale == 1.7
+
+    den = tiny_denoiser()
+    save_denoiser(tmp_path / "den", den, NoiseSchedule().config, {"kind": "minilm"}, 196, "abc")
+    den2, doc = load_denoiser(tmp_path / "den")
+    assert all(torch.equal(a, b) for a, b in zip(den.state_dict().values(), den2.state_dict().values()))
+    assert doc["config"]["canvas_frames"] == 196
+
+    # corrupt: flip bytes in the weights
+    f = tmp_path / "den" / "denoiser.safetensors"
+    data = bytearray(f.read_bytes())
+    data[-10:] = b"\x00" * 10
+    f.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match="checksum"):
+        load_denoiser(tmp_path / "den")
+    # truncated and unchecked: safetensors itself refuses
+    f.write_bytes(bytes(data[: len(data) // 2]))
+    with pytest.raises(CheckpointError):
+        load_checkpoint(tmp_path / "den", verify=False)
+    # foreign directories and kinds
+    (tmp_path / "foreign").mkdir()
+    (tmp_path / "foreign" / "config.json").write_text(json.dumps({"_name_or_path": "bert"}))
+    with pytest.raises(CheckpointError, match="foreign"):
+        load_vae(tmp_path / "foreign")
+    with pytest.raises(CheckpointError, match="expected 'denoiser'"):
+        load_denoiser(tmp_path / "vae")
+    with pytest.raises(CheckpointError, match="not a checkpoint"):
+        load_vae(tmp_path / "missing")
+    (tmp_path / "badjson").mkdir()
+    (tmp_path / "badjson" / "config.json").write_text("{nope")
+    with pytest.raises(CheckpointError, match="corrupt JSON"):
+        load_vae(tmp_path / "badjson")
+    # weights that do not fit the model
+    save_checkpoint(tmp_path / "wrong", "vae", {"vae": {"latent_dim": 16}, "latent_scale": 1.0},
+                    {"vae": vae.state_dict(), "stats": {"mean": torch.zeros(263), "std": torch.ones(263)}})
+    with pytest.raises(CheckpointError, match="do not fit"):
+        load_vae(tmp_path / "wrong")
+
+
+def test_atomic_save_never_leaves_partial_checkpoints(tmp_path, monkeypatch):
+    save_checkpoint(tmp_path / "ck", "vae", {"a": 1}, {"w": {"x": torch.ones(3)}})
+    import salad.checkpoint as ck
+
+    def boom(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(ck, "save_file", boom)
+    with pytest.raises(OSError):
+        save_checkpoint(tmp_path / "ck", "vae", {"a": 2}, {"w": {"x": torch.zeros(3)}})
+    doc, parts = load_checkpoint(tmp_path / "ck")
+    assert doc["config"] == {"a": 1} and torch.equal(parts["w"]["x"], torch.ones(3))
+    assert [p.name for p in tmp_path.iterdir()] == ["ck"]
