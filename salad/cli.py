@@ -44,6 +44,34 @@ def cmd_data_stats(a) -> int:
     return 0
 
 
+def _progress_bar(desc: str):
+    from tqdm import tqdm
+    bar = tqdm(total=1, desc=desc, leave=False)
+
+    def update(i: int, n: int) -> None:
+        bar.total = n
+        bar.n = i
+        bar.refresh()
+    return bar, update
+
+
+def cmd_generate(a) -> int:
+    from .pipeline import load_pipeline
+    pipe = load_pipeline(a.model, bf16=not a.fp32)
+    outs = [Path(o) for o in a.output]
+    bar, update = _progress_bar("sampling")
+    motions = pipe.generate(a.prompt, seconds=a.seconds, seed=a.seed, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
+                            batch=a.batch, progress=update)
+    bar.close()
+    motions = motions if isinstance(motions, list) else [motions]
+    for k, m in enumerate(motions):
+        for o in outs:
+            path = o if len(motions) == 1 else o.with_name(f"{o.stem}_{k}{o.suffix}")
+            m.save(path)
+            print(f"wrote {path} ({m.frames} frames, {m.seconds:.2f} s)")
+    return 0
+
+
 def cmd_train(a) -> int:
     from .config import load_toml
     from .training.configs import DenoiserTrainConfig, VAETrainConfig
@@ -93,6 +121,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("dir")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_data_stats)
+
+    g = sub.add_parser("generate", help="text -> motion, saved as .npy/.npz/.bvh/.mp4/.gif")
+    g.add_argument("prompt")
+    g.add_argument("-o", "--output", action="append", required=True,
+                   help="output file; repeat for several formats (e.g. -o walk.mp4 -o walk.bvh)")
+    g.add_argument("--seconds", default=None, help="length in seconds, or 'auto' (default) to let the model decide")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--steps", type=int, default=50)
+    g.add_argument("--cfg", type=float, default=7.5, help="classifier-free guidance scale")
+    g.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
+    g.add_argument("--batch", type=int, default=1, help="motions to generate (files get a _k suffix)")
+    g.add_argument("--model", default=None, help="model directory (default: the embedded model)")
+    g.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
+    g.set_defaults(func=cmd_generate)
 
     t = sub.add_parser("train", help="train the VAE, the denoiser or the evaluator")
     t.add_argument("what", choices=("vae", "denoiser", "evaluator"))
