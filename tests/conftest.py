@@ -107,3 +107,36 @@ def write_tiny_dataset(root: Path, n: int = 12, frames: int = 72) -> Path:
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory) -> Path:
     return write_tiny_dataset(tmp_path_factory.mktemp("tiny-hml"))
+
+
+BANDAI_SUBSET = (
+    "Bandai-Namco-Research-Motiondataset-1/data/dataset-1_bye_happy_001",
+    "Bandai-Namco-Research-Motiondataset-1/data/dataset-1_walk_normal_002",
+    "Bandai-Namco-Research-Motiondataset-2/data/dataset-2_wave-left-hand_active_001",
+    "Bandai-Namco-Research-Motiondataset-2/data/dataset-2_wave-left-hand_active_011",  # truncated: 19 frames
+    "Bandai-Namco-Research-Motiondataset-2/data/dataset-2_walk-turn-right_elderly_001",
+    "Bandai-Namco-Research-Motiondataset-2/data/dataset-2_raise-up-both-hands_exhausted_001",
+)
+
+
+@pytest.fixture(scope="session")
+def bandai_subset(shared_data, tmp_path_factory) -> Path:
+    """A few real Bandai clips (BVH + JSON + label files) in the archive's own layout,
+    streamed out of the archive once per session."""
+    import tarfile
+
+    archive = shared_data / "bandai-motiondataset-dev.tar.xz"
+    if not archive.is_file():
+        pytest.skip(f"{archive} is not present")
+    out = tmp_path_factory.mktemp("bandai-subset")
+    wanted = {f"{m}{ext}" for m in BANDAI_SUBSET for ext in (".bvh", ".json")}
+    with tarfile.open(archive, "r|xz") as tar:
+        for member in tar:
+            rel = member.name.split("dataset/", 1)[-1]
+            if member.isfile() and (rel in wanted or "/cfg/" in rel):
+                dest = out / rel
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                dest.write_bytes(tar.extractfile(member).read())
+                wanted.discard(rel)
+    assert not wanted, f"archive lacks {sorted(wanted)}"
+    return out

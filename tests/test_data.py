@@ -1,0 +1,131 @@
+import json
+import tarfile
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from salad.data import captions as cap
+from salad.data.build import Clip, assign_splits, build_bandai, dataset_stats
+from salad.data.dataset import (DatasetError, MotionDataset, WindowSampler, collate_motions, parse_caption_line)
+from salad.motion import representation as rep
+
+
+def test_every_label_pair_gets_three_varied_captions():
+    for content in cap.CONTENT_PHRASES:
+        for style in cap.STYLE_PHRASES:
+            caps = cap.captions_for(content, style, f"{content}/{style}", 3)
+            assert len(set(caps)) == 3
+            assert caps == cap.captions_for(content, style, f"{content}/{style}", 3), "reproducible"
+    waves = cap.captions_for("wave-left-hand", "exhausted", "x", 3)
+    assert all("left" in c for c in waves)
+    assert any(w in " ".join(waves) for w in ("exhausted", "worn", "wearily"))
+
+
+def test_left_right_swapping():
+    assert cap.swap_left_right("Left hand, then right; turn counterclockwise") == \
+        "Right hand, then left; turn clockwise"
+    assert cap.swap_left_right("leftover bright") == "leftover bright"
+    assert set(cap.MIRRORED_CONTENT) == {k for k in cap.CONTENT_PHRASES if "left" in k or "right" in k}
+
+
+def test_caption_lines_parse_back():
+    line = cap.caption_line("a person waves their left hand happily")
+    c = parse_caption_line(line)
+    assert c.text == "a person waves their left hand happily" and c.start == c.end == 0.0
+    assert "wave/VERB" in c.tokens
+    with pytest.raises(DatasetError):
+        parse_caption_line("no fields here")
+
+
+def test_splits_are_stratified_and_fixed():
+    clips = [Clip(f"c{i}_{k}", Path("x"), 2, k, s) for k in ("walk", "run") for s in ("a", "b") for i in range(40)]
+    a, b = assign_splits(clips, seed=0), assign_splits(clips, seed=0)
+    assert a == b
+    for k in ("walk", "run"):
+        for s in ("a", "b"):
+            counts = Counter(a[c.name] for c in clips if c.content == k and c.style == s)
+            assert counts["train"] == 32 and counts["val"] == 2 and counts["test"] == 6
+
+
+def test_loader_batches_windows_and_subclips(tiny_dataset, tmp_path):
+    ds = MotionDataset(tiny_dataset, "train")
+    assert len(ds) == 8 and ds.dim == 263
+    item = ds[0]
+    assert item["features"].shape[1] == 263 and isinstance(item["caption"], str)
+    batch = collate_motions([ds[i] for i in range(4)])
+    assert batch["features"].shape[0] == 4 and batch["features"].shape[1] % 4 == 0
+    assert batch["valid"].sum(1).tolist() == batch["lengths"].tolist()
+    w = WindowSampler(ds, window=32, overhang=0.5).batch(6, np.random.default_rng(0))
+    assert w["features"].shape == (6, 32, 263) and set(np.unique(w["activation"])) <= {0.0, 1.0}
+    # a timestamped caption becomes its own sub-clip sample
+    import shutil
+    d = tmp_path / "ts"
+    shutil.copytree(tiny_dataset, d)
+    name = (d / "train.txt").read_text().split()[0]
+    with open(d / "texts" / f"{name}.txt", "a") as f:
+        f.write(cap.caption_line("a person takes two steps", 0.5, 2.5) + "\n")
+    ds2 = MotionDataset(d, "train")
+    sub = [it for it in ds2.items if it.name.startswith(f"{name}@")]
+    assert len(sub) == 1 and len(sub[0].features) == 40 and sub[0].captions == ["a person takes two steps"]
+    with pytest.raises(DatasetError, match="new_joint_vecs"):
+        MotionDataset(tmp_path / "nothing")
+
+
+@pytest.mark.shared_data
+def test_build_from_real_bandai_clips(bandai_subset, tmp_path):
+    archive = tmp_path / "subset.tar.xz"
+    with tarfile.open(archive, "w:xz") as tar:
+        tar.add(bandai_subset, arcname="dataset")
+    out = tmp_path / "hml"
+    report = build_bandai(archive, out, workers=1, progress=False)
+    assert report["clips_found"] == 6 and report["clips_built"] == 5
+    assert list(report["skipped"]) == ["b2_wave-left-hand_active_011"] and "too short" in report["skipped"][
+        "b2_wave-left-hand_active_011"]
+    ids = sorted(p.stem for p in (out / "new_joint_vecs").glob("*.npy"))
+    assert len(ids) == 10 and all(f"M{i}" in ids for i in ids if not i.startswith("M"))
+    splits = {s: (out / f"{s}.txt").read_text().split() for s in ("train", "val", "test")}
+    assert sorted(sum(splits.values(), [])) == ids
+    for s, names in splits.items():  # mirrors stay with their source
+        assert {n.lstrip("M") for n in names}.isdisjoint({n.lstrip("M") for t, o in splits.items() if t != s for n in o})
+    labels = json.loads((out / "labels.json").read_text())
+    assert labels["Mb2_wave-left-hand_active_001"]["content"] == "wave-right-hand"
+    mirrored_caps = (out / "texts" / "Mb2_wave-left-hand_active_001.txt").read_text()
+    assert "right" in mirrored_caps and "left" not in mirrored_caps
+    assert len((out / "texts" / "b1_bye_happy_001.txt").read_text().splitlines()) >= 3
+    assert np.load(out / "Mean.npy").shape == (263,) and (np.load(out / "Std.npy") > 0).all()
+    feats = np.load(out / "new_joint_vecs" / "b2_walk-turn-right_elderly_001.npy")
+    joints = np.load(out / "new_joints" / "b2_walk-turn-right_elderly_001.npy")
+    np.testing.assert_allclose(rep.features_to_joints(feats), joints, atol=1e-4)
+    assert abs(joints[..., 1].min()) < 0.05, "feet on the floor"
+    # Channel 0 is the per-frame change of the rotation that turns the facing back to +Z,
+    # so a right turn (towards -X) accumulates a positive angle; its mirror a negative one.
+    assert np.degrees(2 * feats[:, 0].sum()) > 45
+    mirror = np.load(out / "new_joint_vecs" / "Mb2_walk-turn-right_elderly_001.npy")
+    assert np.degrees(2 * mirror[:, 0].sum()) < -45
+    wave = np.load(out / "new_joints" / "b2_wave-left-hand_active_001.npy")
+    left, right = (np.linalg.norm(np.diff(wave[:, w], axis=0), axis=-1).sum() for w in (20, 21))
+    assert left > 2 * right, "the left wrist does the waving"
+    # A rerun gives the same dataset and leaves nothing behind.
+    before = {p.name: p.read_bytes() for p in (out / "new_joint_vecs").iterdir()}
+    build_bandai(archive, out, workers=1, progress=False)
+    after = {p.name: p.read_bytes() for p in (out / "new_joint_vecs").iterdir()}
+    assert before == after
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["hml", "subset.tar.xz"]
+    stats = dataset_stats(out)
+    assert stats["motions"] == 10 and stats["per_content"]["wave-right-hand"] == 1
+
+
+def test_build_reports_a_bad_source(tmp_path):
+    from salad.data.build import BuildError
+    with pytest.raises(BuildError, match="no such file"):
+        build_bandai(tmp_path / "missing.tar.xz", tmp_path / "out")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(BuildError, match="no Bandai"):
+        build_bandai(tmp_path / "empty", tmp_path / "out", progress=False)
+    bad = tmp_path / "bad.tar.xz"
+    bad.write_bytes(b"not an archive")
+    with pytest.raises(BuildError, match="cannot read"):
+        build_bandai(bad, tmp_path / "out", progress=False)
