@@ -129,3 +129,23 @@ def test_build_reports_a_bad_source(tmp_path):
     bad.write_bytes(b"not an archive")
     with pytest.raises(BuildError, match="cannot read"):
         build_bandai(bad, tmp_path / "out", progress=False)
+
+
+def test_kit_ml_style_251_dim_directories_load(tmp_path):
+    """KIT-ML directories carry 251-d features (21 joints); the loader follows Mean.npy."""
+    root = tmp_path / "kit"
+    (root / "new_joint_vecs").mkdir(parents=True)
+    (root / "texts").mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        np.save(root / "new_joint_vecs" / f"{i:05d}.npy", rng.normal(size=(50 + 10 * i, 251)).astype(np.float32))
+        (root / "texts" / f"{i:05d}.txt").write_text(cap.caption_line("a person jumps") + "\n")
+    (root / "train.txt").write_text("00000\n00001\n00002\n")
+    np.save(root / "Mean.npy", np.zeros(251, np.float32))
+    np.save(root / "Std.npy", np.ones(251, np.float32))
+    ds = MotionDataset(root, "train")
+    assert ds.dim == 251 and len(ds) == 3
+    assert collate_motions([ds[0], ds[2]])["features"].shape == (2, 68, 251)
+    np.save(root / "new_joint_vecs" / "00001.npy", np.zeros((50, 263), np.float32))
+    with pytest.raises(DatasetError, match="251"):
+        MotionDataset(root, "train")

@@ -130,3 +130,30 @@ log_every = 1
     assert f"resumed {tmp_path / 'run'} at step {saved}" in done.stderr
     _, _, _, doc = load_vae(tmp_path / "run" / "model")
     assert doc["meta"]["step"] == saved + 3
+
+
+@pytest.mark.slow
+def test_torchrun_launches_two_process_training(tiny_dataset, tmp_path):
+    cfg = tmp_path / "vae.toml"
+    cfg.write_text(f"""
+[data]
+root = "{tiny_dataset}"
+window = 16
+[model]
+latent_dim = 8
+[optim]
+batch_size = 2
+warmup_steps = 1
+max_steps = 2
+[run]
+out_dir = "{tmp_path / 'run'}"
+bf16 = false
+checkpoint_every = 2
+""")
+    torchrun = Path(sys.executable).with_name("torchrun")
+    out = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "salad.cli", "train", "vae",
+                          "--config", str(cfg), "--threads", "1"], cwd=REPO, capture_output=True, text=True,
+                         timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    _, _, _, doc = load_vae(tmp_path / "run" / "model")
+    assert doc["meta"]["step"] == 2 and doc["meta"]["samples_seen"] == 2 * 2 * 2
