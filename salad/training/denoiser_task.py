@@ -4,7 +4,7 @@ Each batch is either "fixed length" (motions of their own length, padded and mas
 in time) or "auto length" (every motion on the full canvas, followed by VAE-encoded
 padding whose activation channel is 0), chosen per batch. One model thus learns both
 to fill a requested duration and to decide a duration itself (MoLA). Latents come from
-the frozen VAE on the fly, so every crop is encoded exactly as it will be decoded.
+the frozen VAE on the fly, so every random crop gets its own encoding.
 """
 from __future__ import annotations
 
@@ -120,22 +120,23 @@ class DenoiserTask:
         items = [self.dataset.items[i] for i in idx]
         auto = bool(rng.random() < self.cfg.auto_length_prob) if self.cfg.model.length_modes else False
         crops = [self.normalizer.normalize(self._crop(it.features, rng, self.canvas)) for it in items]
+        # One batched encode: every motion is followed by padding with activation 0, the
+        # way the VAE saw motion ends in training. Fixed-length rows then keep only their
+        # own latent frames (masked in time); auto-length rows keep the whole canvas.
+        T = self.canvas if auto else max(len(c) for c in crops)
+        feats = torch.zeros(B, T, self.dataset.dim)
+        act = torch.zeros(B, T)
+        for b, c in enumerate(crops):
+            feats[b, :len(c)] = torch.from_numpy(c)
+            act[b, :len(c)] = 1.0
+        latents = self.encode(feats, act)
         if auto:
-            feats = torch.zeros(B, self.canvas, self.dataset.dim)
-            act = torch.zeros(B, self.canvas)
-            for b, c in enumerate(crops):
-                feats[b, :len(c)] = torch.from_numpy(c)
-                act[b, :len(c)] = 1.0
-            latents = self.encode(feats, act)
             frame_mask = None
         else:
-            lat = [self.encode(torch.from_numpy(c)[None], None)[0] for c in crops]
-            T = max(z.shape[0] for z in lat)
-            latents = torch.zeros(B, T, *lat[0].shape[1:])
-            frame_mask = torch.zeros(B, T, dtype=torch.bool)
-            for b, z in enumerate(lat):
-                latents[b, :z.shape[0]] = z
-                frame_mask[b, :z.shape[0]] = True
+            frame_mask = torch.zeros(B, T // 4, dtype=torch.bool)
+            for b, c in enumerate(crops):
+                frame_mask[b, :len(c) // 4] = True
+            latents = latents * frame_mask[:, :, None, None]
         captions = [it.captions[int(rng.integers(len(it.captions)))] for it in items]
         drop = rng.random(B) < self.cfg.text_dropout
         captions = ["" if d else c for c, d in zip(captions, drop)]
