@@ -1,0 +1,16 @@
+"""Rendering: offscreen skeleton videos (pyrender on EGL or OSMesa) and Plotly/PNG figures.
+
+Importing this package does not import OpenGL; the GL platform is chosen at the
+first render (see `gl_backend`).
+"""
+from .backend import gl_backend
+from .figures import attention_heatmap, attention_overview, attention_png, skeleton_figure
+from .video import (
+    last_render_stats, render_frames, render_side_by_side, render_video, save_frame_strip, save_gif, warm_up,
+)
+
+__all__ = [
+    "attention_heatmap", "attention_overview", "attention_png", "gl_backend", "last_render_stats",
+    "render_frames", "render_side_by_side", "render_video", "save_frame_strip", "save_gif",
+    "skeleton_figure", "warm_up",
+]

@@ -1,0 +1,281 @@
+"""Interactive Plotly figures (3D skeleton with a frame slider, attention heatmaps) and a
+static PNG of the heatmaps for export. Inputs are plain NumPy arrays."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+
+from salad.motion import skeleton as sk
+
+from . import style
+from .geometry import BONES, HEAD
+
+if TYPE_CHECKING:
+    import plotly.graph_objects as go
+
+PART_LABELS = tuple(n.replace("_", " ") for n in sk.BODY_PARTS.names)
+MAX_FIGURE_FRAMES = 300     # keeps the figure's JSON small enough for a browser
+FONT = "DejaVu Sans, Arial, sans-serif"
+
+
+def _hex(rgb: np.ndarray) -> str:
+    r, g, b = (int(round(float(c) * 255)) for c in rgb)
+    return f"#{r:02x}{g:02x}{b:02x}"
+
+
+def _plotly_colorscale() -> list[list]:
+    stops = np.linspace(0.0, 1.0, len(style.ATTENTION_CMAP))
+    return [[float(s), c] for s, c in zip(stops, style.ATTENTION_CMAP)]
+
+
+# ------------------------------------------------------------------ inputs
+
+def _check_attention(att, words, name: str = "attention") -> tuple[np.ndarray, list[str]]:
+    arr = np.asarray(att, dtype=np.float64)
+    if isinstance(words, str):
+        words = [words]
+    words = [str(w) for w in words]
+    if arr.ndim == 2:
+        arr = arr[None]
+    n_parts = sk.BODY_PARTS.size
+    if arr.ndim != 3 or arr.shape[1] != n_parts:
+        raise ValueError(f"{name}: expected shape (n_words, {n_parts}, T) or ({n_parts}, T), "
+                         f"got {np.shape(att)}")
+    if arr.shape[2] == 0 or arr.shape[0] == 0:
+        raise ValueError(f"{name}: empty (shape {arr.shape})")
+    if len(words) != arr.shape[0]:
+        raise ValueError(f"{name}: {arr.shape[0]} word rows but {len(words)} words")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name}: contains NaN/inf")
+    return arr, words
+
+
+def _check_fps(fps) -> float:
+    fps = float(fps)
+    if not np.isfinite(fps) or fps <= 0:
+        raise ValueError(f"fps: must be positive, got {fps}")
+    return fps
+
+
+def _color_range(arr: np.ndarray, zmax: float | None) -> tuple[float, float]:
+    top = float(arr.max()) if zmax is None else float(zmax)
+    return 0.0, top if top > 0 else 1.0
+
+
+# ------------------------------------------------------------------ 3D skeleton
+
+def _to_plot(p: np.ndarray) -> np.ndarray:
+    """Data axes (x left, y up, z forward) -> Plotly axes (forward, left, up).
+    A cyclic permutation, so the figure is not mirrored and Plotly's z is up."""
+    return p[..., [2, 0, 1]]
+
+
+def _bone_polyline() -> tuple[np.ndarray, np.ndarray]:
+    """Joint indices of all bones as one polyline with breaks (-1), and each vertex's part."""
+    idx, part = [], []
+    for p, c in BONES:
+        idx += [p, c, -1]
+        part += [sk.PART_OF_JOINT[c]] * 2 + [0]
+    return np.array(idx), np.array(part)
+
+
+def _discrete_colorscale() -> list[list]:
+    n = sk.BODY_PARTS.size
+    scale = []
+    for i, rgb in enumerate(style.PART_COLORS):
+        scale += [[i / n, _hex(rgb)], [(i + 1) / n, _hex(rgb)]]
+    return scale
+
+
+def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = None) -> "go.Figure":
+    """An orbitable 3D skeleton with a frame slider and play/pause; parts coloured, floor
+    drawn, equal aspect. joints: (T, 22, 3) metres, Y up."""
+    import plotly.graph_objects as go
+
+    from .video import _check_joints
+
+    j = _check_joints(joints)
+    fps = _check_fps(fps)
+    stride = int(np.ceil(len(j) / MAX_FIGURE_FRAMES))
+    shown = np.arange(0, len(j), stride)
+    pj = _to_plot(j)
+
+    lo, hi = pj.reshape(-1, 3).min(0), pj.reshape(-1, 3).max(0)
+    centre = (lo + hi) / 2
+    half = max(float((hi - lo)[:2].max()) / 2 + 0.4, 1.0)
+    x_rng = [centre[0] - half, centre[0] + half]
+    y_rng = [centre[1] - half, centre[1] + half]
+    z_rng = [0.0, max(float(hi[2]) + 0.2, 2.0)]
+
+    # Floor: a checker of 0.5 m tiles under the whole motion.
+    tile = style.FLOOR_TILE
+    ix = np.arange(np.floor(x_rng[0] / tile), np.ceil(x_rng[1] / tile))
+    iy = np.arange(np.floor(y_rng[0] / tile), np.ceil(y_rng[1] / tile))
+    gx, gy = np.meshgrid(ix, iy, indexing="ij")
+    gx, gy = gx.ravel(), gy.ravel()
+    corners = np.array([[0, 0], [1, 0], [1, 1], [0, 1]])
+    quad = (np.stack([gx, gy], 1)[:, None, :] + corners) * tile
+    verts = np.concatenate([quad.reshape(-1, 2), np.zeros((len(quad) * 4, 1))], axis=1)
+    q = 4 * np.arange(len(quad))
+    faces = np.concatenate([np.stack([q, q + 1, q + 2], 1), np.stack([q, q + 2, q + 3], 1)])
+    tile_col = np.where((gx + gy) % 2 == 0, _hex(style.FLOOR_DARK), _hex(style.FLOOR_LIGHT))
+    floor = go.Mesh3d(x=verts[:, 0], y=verts[:, 1], z=verts[:, 2], i=faces[:, 0], j=faces[:, 1],
+                      k=faces[:, 2], facecolor=np.concatenate([tile_col, tile_col]), flatshading=True,
+                      hoverinfo="skip", showlegend=False, name="floor",
+                      lighting=dict(ambient=1.0, diffuse=0.0))
+    path = go.Scatter3d(x=pj[:, 0, 0], y=pj[:, 0, 1], z=np.full(len(pj), 0.005), mode="lines",
+                        line=dict(color="#9aa3ad", width=3), name="root path", hoverinfo="skip")
+
+    idx, part = _bone_polyline()
+    is_break = idx < 0
+
+    def xyz(t: int) -> dict:
+        pts = pj[t][np.where(is_break, 0, idx)]
+        pts[is_break] = np.nan
+        return dict(x=pts[:, 0], y=pts[:, 1], z=pts[:, 2])
+
+    # One trace for the whole body, coloured per vertex through a stepped colour scale:
+    # frames then only carry coordinates, which keeps building and playing them fast.
+    sizes = np.where(idx == HEAD, 13, 5)
+    body = go.Scatter3d(
+        **xyz(0), mode="lines+markers", name="skeleton", showlegend=False, hoverinfo="skip",
+        line=dict(color=part + 0.5, colorscale=_discrete_colorscale(), cmin=0, cmax=sk.BODY_PARTS.size,
+                  width=9),
+        marker=dict(color=part + 0.5, colorscale=_discrete_colorscale(), cmin=0, cmax=sk.BODY_PARTS.size,
+                    size=sizes, line=dict(width=0)))
+    legend = [go.Scatter3d(x=[None], y=[None], z=[None], mode="markers", name=PART_LABELS[i],
+                           marker=dict(color=_hex(style.PART_COLORS[i]), size=8), hoverinfo="skip")
+              for i in range(sk.BODY_PARTS.size)]
+    fig = go.Figure(data=[floor, path, body] + legend)
+    fig.frames = [go.Frame(data=[dict(type="scatter3d", **xyz(int(t)))], traces=[2], name=str(int(t)))
+                  for t in shown]
+    frame_ms = 1000.0 * stride / fps
+    steps = [dict(method="animate", label=f"{t / fps:.2f}",
+                  args=[[str(int(t))], dict(mode="immediate", frame=dict(duration=0, redraw=True),
+                                            transition=dict(duration=0))]) for t in shown]
+    fig.update_layout(
+        title=dict(text=title or "", x=0.02, font=dict(family=FONT, size=16)),
+        font=dict(family=FONT), paper_bgcolor="white", margin=dict(l=0, r=0, t=40 if title else 10, b=0),
+        legend=dict(orientation="h", y=1.0, x=0.5, xanchor="center", yanchor="bottom",
+                    itemclick=False, itemdoubleclick=False, font=dict(size=11)),
+        scene=dict(
+            xaxis=dict(title="z (m), forward", range=x_rng, backgroundcolor=_hex(style.BACKGROUND)),
+            yaxis=dict(title="x (m), left", range=y_rng, backgroundcolor=_hex(style.BACKGROUND)),
+            zaxis=dict(title="y (m), up", range=z_rng, backgroundcolor=_hex(style.BACKGROUND)),
+            aspectmode="manual",
+            aspectratio=dict(x=1.0, y=1.0, z=(z_rng[1] - z_rng[0]) / (2 * half)),
+            camera=dict(eye=dict(x=1.35, y=0.95, z=0.55), up=dict(x=0, y=0, z=1)),
+        ),
+        updatemenus=[dict(
+            type="buttons", direction="left", x=0.0, y=0.0, xanchor="left", yanchor="top",
+            pad=dict(t=30, r=10), showactive=False,
+            buttons=[dict(label="▶ play", method="animate",
+                          args=[None, dict(frame=dict(duration=frame_ms, redraw=True), fromcurrent=True,
+                                           transition=dict(duration=0), mode="immediate")]),
+                     dict(label="❚❚ pause", method="animate",
+                          args=[[None], dict(frame=dict(duration=0, redraw=False), mode="immediate",
+                                             transition=dict(duration=0))])])],
+        sliders=[dict(active=0, steps=steps, x=0.16, len=0.84, y=0.0, yanchor="top", pad=dict(t=20),
+                      currentvalue=dict(prefix="t = ", suffix=" s", font=dict(size=12)))],
+    )
+    return fig
+
+
+# ------------------------------------------------------------------ attention
+
+def _heatmap_trace(att_word: np.ndarray, fps: float, zrange, **kw) -> "go.Heatmap":
+    import plotly.graph_objects as go
+
+    t = np.arange(att_word.shape[1]) / fps
+    return go.Heatmap(z=att_word, x=t, y=list(PART_LABELS), zmin=zrange[0], zmax=zrange[1],
+                      colorscale=_plotly_colorscale(),
+                      hovertemplate="%{y}<br>t = %{x:.2f} s<br>attention %{z:.3f}<extra></extra>", **kw)
+
+
+def attention_heatmap(att_word: np.ndarray, word: str, fps: float = 20,
+                      zmax: float | None = None) -> "go.Figure":
+    """One word's attention over the 7 body parts (rows, root at the top) and time (seconds).
+    att_word: (7, T)."""
+    import plotly.graph_objects as go
+
+    arr, words = _check_attention(att_word, [word], "att_word")
+    fps = _check_fps(fps)
+    fig = go.Figure(_heatmap_trace(arr[0], fps, _color_range(arr, zmax),
+                                   colorbar=dict(title=dict(text="attention"), thickness=12)))
+    fig.update_layout(
+        title=dict(text=f"“{words[0]}” → body parts", x=0.02, font=dict(family=FONT, size=15)),
+        font=dict(family=FONT), paper_bgcolor="white", plot_bgcolor="white",
+        margin=dict(l=10, r=10, t=45, b=40), height=300,
+        xaxis=dict(title="time (s)"), yaxis=dict(title="body part", autorange="reversed"))
+    return fig
+
+
+def attention_overview(att: np.ndarray, words: Sequence[str], fps: float = 20, cols: int = 3,
+                       zmax: float | None = None) -> "go.Figure":
+    """Small heatmaps for every word on one shared colour scale. att: (n_words, 7, T)."""
+    from plotly.subplots import make_subplots
+
+    arr, words = _check_attention(att, words)
+    fps = _check_fps(fps)
+    n = len(words)
+    cols = max(1, min(int(cols), n))
+    rows = int(np.ceil(n / cols))
+    fig = make_subplots(rows=rows, cols=cols, subplot_titles=[f"“{w}”" for w in words],
+                        shared_xaxes=True, shared_yaxes=True, horizontal_spacing=0.03,
+                        vertical_spacing=min(0.12, 0.5 / rows))
+    zr = _color_range(arr, zmax)
+    for i in range(n):
+        fig.add_trace(_heatmap_trace(arr[i], fps, zr, coloraxis="coloraxis", name=words[i]),
+                      row=i // cols + 1, col=i % cols + 1)
+    for r in range(1, rows + 1):
+        fig.update_yaxes(autorange="reversed", row=r, col=1)
+        fig.update_xaxes(title_text="time (s)" if r == rows else None, row=r)
+    fig.update_yaxes(autorange="reversed")
+    fig.update_layout(
+        coloraxis=dict(colorscale=_plotly_colorscale(), cmin=zr[0], cmax=zr[1],
+                       colorbar=dict(title=dict(text="attention"), thickness=12)),
+        font=dict(family=FONT, size=11), paper_bgcolor="white", plot_bgcolor="white",
+        margin=dict(l=10, r=10, t=40, b=40), height=max(260, 190 * rows))
+    return fig
+
+
+def attention_png(att: np.ndarray, words: Sequence[str] | str, path: str | os.PathLike, fps: float = 20,
+                  cols: int = 3, zmax: float | None = None, dpi: int = 150) -> Path:
+    """The heatmaps as a PNG (one panel per word, shared colour scale), written atomically."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import LinearSegmentedColormap
+    from matplotlib.figure import Figure
+
+    from .video import _atomic, _check_out
+
+    out = _check_out(path, (".png",))
+    arr, words = _check_attention(att, words)
+    fps = _check_fps(fps)
+    n, _, t_len = arr.shape
+    cols = max(1, min(int(cols), n))
+    rows = int(np.ceil(n / cols))
+    fig = Figure(figsize=(3.6 * cols + 0.8, 2.0 * rows + 0.4), dpi=dpi, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = np.atleast_1d(fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False)).ravel()
+    cmap = LinearSegmentedColormap.from_list("attention", [style.hex_rgb(c) for c in style.ATTENTION_CMAP])
+    zr = _color_range(arr, zmax)
+    extent = (0.0, t_len / fps, sk.BODY_PARTS.size - 0.5, -0.5)
+    image = None
+    for i, ax in enumerate(axes):
+        if i >= n:
+            ax.set_visible(False)
+            continue
+        image = ax.imshow(arr[i], aspect="auto", cmap=cmap, vmin=zr[0], vmax=zr[1], extent=extent,
+                          interpolation="nearest")
+        ax.set_title(f"“{words[i]}”", fontsize=10)
+        ax.set_yticks(range(sk.BODY_PARTS.size), PART_LABELS, fontsize=8)
+        ax.tick_params(axis="x", labelsize=8)
+        if i // cols == rows - 1 or i + cols >= n:
+            ax.set_xlabel("time (s)", fontsize=9)
+    fig.colorbar(image, ax=list(axes[:n]), label="attention", shrink=0.9)
+    with _atomic(out) as tmp:
+        fig.savefig(tmp, format="png", facecolor="white")
+    return out
