@@ -9,6 +9,7 @@ import math
 import os
 from contextlib import nullcontext
 from pathlib import Path
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -154,6 +155,88 @@ class Pipeline:
             for b, m in enumerate(motions):
                 m.attention = store.maps(b, frames=m.frames)
         return motions[0] if batch == 1 else motions
+
+    # ------------------------------------------------------------ editing
+    def edit(self, source_prompt: str, target_prompt: str | None = None, mode: str = "swap", seed: int = 0,
+             seconds: float | str | None = None, steps: int = 50, cfg: float = 7.5, sampler: str = "ddim",
+             tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
+             self_inject: float = 0.2, progress: Progress | None = None) -> EditResult:
+        """Zero-shot edit by cross-attention modulation (SALAD Algorithm 1).
+
+        mode: "swap" (target_prompt replaces words; tau, default 0.8, is the share of T
+        during which the source's maps lead), "refine" (target_prompt adds words; tau
+        default 0), "reweight" (reweight={"word": s}, s in [-3, 3]) or "mirror" (mirror=
+        "lower" | "upper" | "all"). reweight and mirror also compose with swap/refine.
+        Source and edited branches, with their CFG rows, run in one batched forward
+        from the same noise. Returns both motions and both attention maps.
+        """
+        from .editing.align import align_tokens
+        from .editing.controllers import AttentionEdit, KeepSource, Mirror, Refine, Reweight, WordSwap, cfg_rows
+        from .editing.store import AttentionStore
+
+        if mode not in EDIT_MODES:
+            raise ValueError(f"mode must be one of {', '.join(EDIT_MODES)}, got {mode!r}")
+        source_prompt = self.check_prompt(source_prompt)
+        if mode in ("swap", "refine"):
+            if target_prompt is None:
+                raise ValueError(f"{mode} needs a target prompt")
+            target_prompt = self.check_prompt(target_prompt)
+        else:
+            target_prompt = source_prompt if target_prompt is None else self.check_prompt(target_prompt)
+        if mode == "reweight" and not reweight:
+            raise ValueError("reweight needs words and scales, e.g. reweight={'high': 2.0}")
+        if mode == "mirror" and mirror is None:
+            mirror = "all"
+        frames = self.frames_for(seconds)
+        steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
+        canvas = frames or self.canvas_frames
+
+        text = self.encode_text(["", "", source_prompt, target_prompt])
+        rows = cfg_rows(1)
+        align_mode = {"swap": "swap", "refine": "refine"}.get(mode, "same" if target_prompt == source_prompt else "refine")
+        alignment = align_tokens(text, source_row=2, target_row=3, mode=align_mode)
+        if mode == "swap":
+            rule = WordSwap(alignment, 0.8 if tau is None else tau)
+        elif mode == "refine" or target_prompt != source_prompt:
+            rule = Refine(alignment, 0.0 if tau is None else tau)
+        else:
+            rule = KeepSource()
+        transforms = []
+        for word, scale in (reweight or {}).items():
+            words = [w.lower() for w in text.words[3]]
+            if word.lower() not in words:
+                raise ValueError(f"cannot re-weight {word!r}: it is not a word of {target_prompt!r} ({', '.join(words)})")
+            transforms.append(Reweight(text.token_indices(3, words.index(word.lower())), scale))
+        if mirror is not None:
+            transforms.append(Mirror(mirror))
+        store = AttentionStore(text, rows=slice(2, 4), frames=canvas)
+        edit = AttentionEdit(rows, steps, rule, transforms, self_inject=self_inject, observers=[store])
+
+        noise = self.noise(1, canvas, seed).repeat(2, 1, 1, 1)        # the same z_T for both branches
+        self.denoiser.set_controller(edit)
+        try:
+            on_step = (lambda i, n, x: progress(i, n)) if progress else None
+            z = sample(self.model_fn(text, auto=frames is None), noise, self.schedule, sampler=sampler,
+                       steps=steps, cfg_scale=cfg, on_step=on_step)
+        finally:
+            self.denoiser.set_controller(None)
+        source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed)
+        source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
+        params = {"mode": mode, "tau": getattr(rule, "tau", None), "reweight": reweight, "mirror": mirror,
+                  "self_inject": self_inject, "seed": seed, "steps": steps, "cfg": cfg, "sampler": sampler}
+        return EditResult(source, edited, source.attention, edited.attention, params)
+
+
+EDIT_MODES = ("swap", "refine", "reweight", "mirror")
+
+
+@dataclass
+class EditResult:
+    source: Motion
+    edited: Motion
+    source_attention: object = None
+    edited_attention: object = None
+    params: dict = field(default_factory=dict)
 
 
 def end_of_motion(activation: np.ndarray, threshold: float = ACTIVATION_THRESHOLD) -> int:

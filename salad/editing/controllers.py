@@ -1,0 +1,180 @@
+"""Attention controllers that edit motion by modulating attention maps (SALAD §3.3, supp. B).
+
+The source and the target branch run in one batched forward from the same initial
+noise; with classifier-free guidance the rows are
+
+    [source uncond, target uncond, source cond, target cond]   (x batch each)
+
+Only the conditional target rows are changed, as in Prompt-to-Prompt. Each rule is a
+small class; `AttentionEdit` runs one base rule (swap, refine or keep) on the
+cross-attention, then any number of map transforms (re-weighting, mirroring), and
+injects the source's self-attention maps early on.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..models.attention import CROSS, AttentionCall
+from ..motion import skeleton as sk
+from .align import TokenAlignment
+
+
+@dataclass
+class Rows:
+    """Where the branches sit in the batched forward (each a slice of batch rows)."""
+
+    source: slice
+    target: slice
+
+
+def cfg_rows(batch: int) -> Rows:
+    """Rows of the conditional source and target branches in the CFG layout above."""
+    return Rows(source=slice(2 * batch, 3 * batch), target=slice(3 * batch, 4 * batch))
+
+
+def _expand(rows: slice, per_row: int) -> slice:
+    return slice(rows.start * per_row, rows.stop * per_row)
+
+
+class StepCounter:
+    """Counts denoising steps: a step starts at every call of the first attention module."""
+
+    def __init__(self, total_steps: int):
+        self.total = total_steps
+        self.step = -1
+        self._first: tuple[str, int] | None = None
+
+    def see(self, call: AttentionCall) -> None:
+        key = (call.kind, call.layer)
+        if self._first is None:
+            self._first = key
+        if key == self._first:
+            self.step += 1
+
+    @property
+    def fraction(self) -> float:
+        """Share of the denoising done before this step (0 at the first step)."""
+        return max(self.step, 0) / max(self.total, 1)
+
+
+# ---------------------------------------------------------------- cross-attention rules
+# A rule maps (source map, target map), each (b, heads, T, J, L), to the target's new map.
+
+class KeepSource:
+    """Mirroring and re-weighting on an unchanged prompt start from the source's map."""
+
+    def __call__(self, src, tgt, progress: float):
+        return src
+
+
+class WordSwap:
+    """Source maps while t >= tau (the early steps), the target's own maps after.
+    tau is a fraction of T: 0.8 means the first 20% of the steps follow the source."""
+
+    def __init__(self, alignment: TokenAlignment, tau: float = 0.8):
+        if not 0.0 <= tau <= 1.0:
+            raise ValueError(f"tau must be in [0, 1], got {tau}")
+        self.alignment, self.tau = alignment, tau
+
+    def __call__(self, src, tgt, progress: float):
+        if progress < 1.0 - self.tau:
+            return self.alignment.apply(src)
+        return tgt
+
+
+class Refine:
+    """Target tokens aligned to a source token take its map; new tokens keep their own.
+    Applied while t >= tau (tau = 0 means every step)."""
+
+    def __init__(self, alignment: TokenAlignment, tau: float = 0.0):
+        if not 0.0 <= tau <= 1.0:
+            raise ValueError(f"tau must be in [0, 1], got {tau}")
+        self.alignment, self.tau = alignment, tau
+
+    def __call__(self, src, tgt, progress: float):
+        if progress >= 1.0 - self.tau:
+            return tgt
+        mapped = self.alignment.apply(src)
+        new = self.alignment.inserted.to(tgt.device)
+        return torch.where(new, tgt, mapped)
+
+
+# ---------------------------------------------------------------- map transforms
+
+class Reweight:
+    """Scale the attention of the given token positions by s (not renormalised, so s
+    can amplify, weaken or, below zero, invert a word's influence)."""
+
+    def __init__(self, tokens: list[int], scale: float):
+        if not -3.0 <= scale <= 3.0:
+            raise ValueError(f"re-weighting scale must be in [-3, 3], got {scale}")
+        if not tokens:
+            raise ValueError("re-weighting needs at least one word of the prompt")
+        self.tokens, self.scale = list(tokens), float(scale)
+
+    def __call__(self, m: torch.Tensor) -> torch.Tensor:
+        w = torch.ones(m.shape[-1], dtype=m.dtype, device=m.device)
+        w[self.tokens] = self.scale
+        return m * w
+
+
+class Mirror:
+    """Swap the maps of counterpart body parts (left/right legs, arms, or both)."""
+
+    def __init__(self, part: str = "all"):
+        if part not in sk.PART_MIRROR_PAIRS:
+            raise ValueError(f"mirror part must be one of {', '.join(sk.PART_MIRROR_PAIRS)}, got {part!r}")
+        perm = list(range(sk.BODY_PARTS.size))
+        for a, b in sk.PART_MIRROR_PAIRS[part]:
+            perm[a], perm[b] = b, a
+        self.part = part
+        self.perm = torch.tensor(perm)
+
+    def __call__(self, m: torch.Tensor) -> torch.Tensor:   # (b, heads, T, J, L)
+        return m.index_select(3, self.perm.to(m.device))    # a new tensor: stored maps stay as they were
+
+
+# ---------------------------------------------------------------- the controller
+
+class AttentionEdit:
+    """Algorithm 1: the target branch's cross-attention becomes Edit(M_source, M_target, t),
+    and its temporal and skeletal self-attention follow the source for the first
+    `self_inject` share of the steps. Values always come from the target branch's own
+    prompt and hidden states, as in the paper. `observers` see the maps actually used.
+    """
+
+    def __init__(self, rows: Rows, steps: int, rule, transforms=(), self_inject: float = 0.2,
+                 observers=()):
+        if not 0.0 <= self_inject <= 1.0:
+            raise ValueError(f"self-attention injection must be a fraction in [0, 1], got {self_inject}")
+        self.rows, self.rule, self.transforms = rows, rule, list(transforms)
+        self.self_inject = self_inject
+        self.counter = StepCounter(steps)
+        self.observers = list(observers)
+
+    def __call__(self, call: AttentionCall) -> torch.Tensor:
+        self.counter.see(call)
+        probs = call.probs
+        if call.kind == CROSS:
+            probs = self._cross(call)
+        elif self.counter.fraction < self.self_inject:
+            per = call.parts if call.kind == "temporal" else call.frames
+            src, tgt = _expand(self.rows.source, per), _expand(self.rows.target, per)
+            probs = probs.clone()
+            probs[tgt] = probs[src]
+        for obs in self.observers:
+            obs(AttentionCall(call.kind, call.layer, probs, call.batch, call.frames, call.parts))
+        return probs
+
+    def _cross(self, call: AttentionCall) -> torch.Tensor:
+        N, H, Q, L = call.probs.shape
+        grid = call.probs.view(N, H, call.frames, call.parts, L)
+        src, tgt = grid[self.rows.source], grid[self.rows.target]
+        edited = self.rule(src, tgt, self.counter.fraction)
+        for t in self.transforms:
+            edited = t(edited)
+        out = call.probs.clone()
+        out[self.rows.target] = edited.reshape(-1, H, Q, L).to(out.dtype)
+        return out

@@ -1,0 +1,183 @@
+import numpy as np
+import pytest
+import torch
+
+from salad.editing.align import align_tokens, align_words
+from salad.editing.controllers import (AttentionEdit, KeepSource, Mirror, Refine, Reweight, Rows, WordSwap,
+                                       cfg_rows)
+from salad.editing.store import AttentionStore, to_motion_rate
+from salad.models.attention import AttentionCall
+from salad.models.text import load_text_encoder
+
+
+@pytest.fixture(scope="module")
+def encoder():
+    return load_text_encoder("minilm")
+
+
+def maps(b=1, h=2, T=3, J=7, L=9, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(b, h, T, J, L, generator=g).softmax(-1)
+
+
+def test_refine_alignment_survives_insertions_in_the_middle(encoder):
+    src, tgt = "a person walks forward", "a person walks slowly forward while waving"
+    assert align_words(src.split(), tgt.split(), "refine") == [0, 1, 2, -1, 3, -1, -1]
+    text = encoder.encode(["", "", src, tgt])
+    al = align_tokens(text, 2, 3, "refine")
+    s_tok = {w: text.token_indices(2, i) for i, w in enumerate(text.words[2])}
+    t_tok = {w: text.token_indices(3, i) for i, w in enumerate(text.words[3])}
+    # "forward" sits at a later position in the target, and still reads the source's "forward" column
+    for a, b in zip(s_tok["forward"], t_tok["forward"]):
+        assert al.weights[a, b] == 1.0 and b > a
+    for w in ("slowly", "while", "waving"):
+        assert all(al.inserted[k] for k in t_tok[w])
+    assert not any(al.inserted[k] for k in t_tok["forward"] + t_tok["person"])
+    # the end token maps to the end token despite the shift
+    s_end = int(text.mask[2].sum()) - 1
+    t_end = int(text.mask[3].sum()) - 1
+    assert al.weights[s_end, t_end] == 1.0
+
+
+def test_swap_pairs_words_by_position_and_needs_equal_length(encoder):
+    text = encoder.encode(["", "", "a person walks forward", "a person runs forward"])
+    al = align_tokens(text, 2, 3, "swap")
+    assert al.word_map == [0, 1, 2, 3]
+    src = torch.zeros(1, text.tokens.shape[1])
+    src[0, text.token_indices(2, 2)] = 1.0             # all attention on "walks"
+    out = al.apply(src)
+    assert out[0, text.token_indices(3, 2)].sum() == pytest.approx(1.0)   # lands on "runs"
+    with pytest.raises(ValueError, match="same number of words"):
+        align_words(["a", "b"], ["a", "b", "c"], "swap")
+
+
+def test_rule_semantics_on_small_tensors(encoder):
+    text = encoder.encode(["", "", "a person walks", "a person runs"])
+    L = text.tokens.shape[1]
+    al = align_tokens(text, 2, 3, "swap")
+    src, tgt = maps(L=L, seed=1), maps(L=L, seed=2)
+    # tau = 1: the switch happens at the start, the target's own maps throughout
+    for progress in (0.0, 0.5, 0.99):
+        assert torch.equal(WordSwap(al, tau=1.0)(src, tgt, progress), tgt)
+    # tau = 0: the switch never happens, the (aligned) source maps throughout
+    for progress in (0.0, 0.5, 0.99):
+        assert torch.equal(WordSwap(al, tau=0.0)(src, tgt, progress), al.apply(src))
+    # default tau = 0.8T: source for the first 20% of the steps
+    sw = WordSwap(al)
+    assert torch.equal(sw(src, tgt, 0.1), al.apply(src)) and torch.equal(sw(src, tgt, 0.3), tgt)
+    assert torch.equal(KeepSource()(src, tgt, 0.5), src)
+
+    ref_text = encoder.encode(["", "", "a person walks", "a person walks happily"])
+    ral = align_tokens(ref_text, 2, 3, "refine")
+    L = ref_text.tokens.shape[1]
+    src, tgt = maps(L=L, seed=3), maps(L=L, seed=4)
+    out = Refine(ral)(src, tgt, 0.5)
+    new = ref_text.token_indices(3, 3)                 # "happily"
+    assert torch.equal(out[..., new], tgt[..., new])
+    kept = ref_text.token_indices(3, 2)                # "walks"
+    assert torch.equal(out[..., kept], src[..., ref_text.token_indices(2, 2)])
+
+
+def test_transforms_mirror_and_reweight():
+    m = maps()
+    for part in ("lower", "upper", "all"):
+        mir = Mirror(part)
+        assert torch.equal(mir(mir(m)), m)
+        assert not torch.equal(mir(m), m)
+    before = m.clone()
+    up = Mirror("upper")(m)
+    assert torch.equal(m, before), "mirroring never changes the maps it reads"
+    assert torch.equal(up[:, :, :, 4], m[:, :, :, 5]) and torch.equal(up[:, :, :, 1], m[:, :, :, 1])
+    assert torch.equal(Reweight([2, 3], 1.0)(m), m)
+    r = Reweight([2], -2.0)(m)
+    assert torch.allclose(r[..., 2], -2.0 * m[..., 2]) and torch.equal(r[..., 0], m[..., 0])
+    with pytest.raises(ValueError):
+        Reweight([2], 3.5)
+    with pytest.raises(ValueError):
+        Mirror("arms")
+
+
+def test_attention_edit_touches_only_the_conditional_target_rows():
+    rows = cfg_rows(1)                                  # [src_u, tgt_u, src_c, tgt_c]
+    edit = AttentionEdit(rows, steps=10, rule=KeepSource(), transforms=[Mirror("all")], self_inject=0.2)
+    T, J, L, H = 3, 7, 5, 2
+    temporal = torch.rand(4 * J, H, T, T).softmax(-1)
+    cross = torch.rand(4, H, T * J, L).softmax(-1)
+    t_out = edit(AttentionCall("temporal", 0, temporal, 4, T, J))
+    assert torch.equal(t_out[3 * J:], temporal[2 * J:3 * J]) and torch.equal(t_out[:3 * J], temporal[:3 * J])
+    c_out = edit(AttentionCall("cross", 0, cross, 4, T, J))
+    grid_in, grid_out = cross.view(4, H, T, J, L), c_out.view(4, H, T, J, L)
+    assert torch.equal(grid_out[:3], grid_in[:3])
+    assert torch.equal(grid_out[3], Mirror("all")(grid_in[2:3])[0])
+    # after the injection window, self-attention is left alone
+    for _ in range(3):
+        edit(AttentionCall("temporal", 0, temporal, 4, T, J))
+    late = edit(AttentionCall("temporal", 0, temporal, 4, T, J))
+    assert torch.equal(late, temporal)
+
+
+def test_attention_store_memory_is_bounded(encoder):
+    text = encoder.encode(["", "a person waves their left hand"])
+    T, J, L = 10, 7, text.tokens.shape[1]
+    sizes = []
+    for heads in (2, 8):
+        store = AttentionStore(text, rows=slice(1, 2), frames=4 * T, steps=(0, 3))
+        for step in range(6):
+            for layer in range(5):
+                store(AttentionCall("cross", layer, torch.rand(2, heads, T * J, L).softmax(-1), 2, T, J))
+        sizes.append(store.nbytes())
+        maps_ = store.maps(0)
+    assert sizes[0] == sizes[1] == 3 * 5 * T * J * L * 2, "3 steps x 5 layers, head-averaged, fp16"
+    assert maps_.aggregate().shape == (6, 7, 4 * T)
+    assert maps_.words == ["a", "person", "waves", "their", "left", "hand"]
+
+
+def test_latent_to_motion_rate():
+    m = np.arange(4, dtype=float)[None]
+    out = to_motion_rate(m, 16)
+    assert out.shape == (1, 16) and out[0, 0] == 0 and out[0, -1] == 3
+    assert np.all(np.diff(out[0]) >= 0)
+
+
+MODES = [
+    dict(mode="swap", target_prompt="a person runs forward"),
+    dict(mode="refine", target_prompt="a person walks forward while waving"),
+    dict(mode="reweight", reweight={"walks": 2.0}),
+    dict(mode="mirror", mirror="upper"),
+    dict(mode="refine", target_prompt="a person walks forward happily", reweight={"happily": 2.5}),
+]
+
+
+@pytest.mark.parametrize("kw", MODES, ids=lambda kw: kw["mode"] + ("+reweight" if "reweight" in kw and kw["mode"] != "reweight" else ""))
+def test_end_to_end_edits_with_a_trained_model(tiny_model, kw):
+    from salad.pipeline import load_pipeline
+    pipe = load_pipeline(tiny_model)
+    res = pipe.edit("a person walks forward", seed=1, seconds=1.6, steps=6, **kw)
+    assert res.source.joints.shape == res.edited.joints.shape == (32, 22, 3)
+    assert np.isfinite(res.edited.joints).all()
+    plain = pipe.generate("a person walks forward", seconds=1.6, seed=1, steps=6)
+    np.testing.assert_allclose(res.source.joints, plain.joints, atol=5e-3)  # the source branch is untouched
+    assert res.edited_attention.aggregate().shape[1:] == (7, 32)
+    assert not np.allclose(res.source.joints, res.edited.joints)
+
+
+def test_swap_with_tau_at_the_start_is_target_only_generation(tiny_model):
+    from salad.pipeline import load_pipeline
+    pipe = load_pipeline(tiny_model)
+    res = pipe.edit("a person walks forward", "a person runs forward", mode="swap", tau=1.0, self_inject=0.0,
+                    seed=2, seconds=1.2, steps=5)
+    target_only = pipe.generate("a person runs forward", seconds=1.2, seed=2, steps=5)
+    np.testing.assert_allclose(res.edited.joints, target_only.joints, atol=5e-3)
+
+
+def test_edit_input_errors(tiny_model):
+    from salad.pipeline import load_pipeline
+    pipe = load_pipeline(tiny_model)
+    with pytest.raises(ValueError, match="mode"):
+        pipe.edit("a person walks", mode="paint")
+    with pytest.raises(ValueError, match="target prompt"):
+        pipe.edit("a person walks", mode="swap")
+    with pytest.raises(ValueError, match="same number of words"):
+        pipe.edit("a person walks", "a person walks fast", mode="swap", steps=2)
+    with pytest.raises(ValueError, match="not a word"):
+        pipe.edit("a person walks", mode="reweight", reweight={"jumps": 2.0}, steps=2)
