@@ -72,6 +72,33 @@ def cmd_generate(a) -> int:
     return 0
 
 
+def cmd_edit(a) -> int:
+    from .pipeline import load_pipeline
+    from .render import render_side_by_side
+    pipe = load_pipeline(a.model, bf16=not a.fp32)
+    reweight = {}
+    for item in a.reweight or []:
+        word, _, scale = item.rpartition("=")
+        try:
+            reweight[word] = float(scale)
+        except ValueError:
+            raise ValueError(f"--reweight takes WORD=SCALE, got {item!r}") from None
+    bar, update = _progress_bar("editing")
+    res = pipe.edit(a.source, a.target, mode=a.mode, seed=a.seed, seconds=a.seconds, steps=a.steps, cfg=a.cfg,
+                    sampler=a.sampler, tau=a.tau, reweight=reweight or None, mirror=a.mirror,
+                    self_inject=a.self_inject, progress=update)
+    bar.close()
+    out = Path(a.output)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, m in (("source", res.source), ("edited", res.edited)):
+        m.save(out / f"{name}.npy")
+        m.save(out / f"{name}.bvh")
+    render_side_by_side([res.source.joints, res.edited.joints], [f"source: {res.source.text}", f"edited ({a.mode})"],
+                        out / "side_by_side.mp4")
+    print(f"wrote {out}/source.npy|bvh, edited.npy|bvh and side_by_side.mp4")
+    return 0
+
+
 def cmd_train(a) -> int:
     from .config import load_toml
     from .training.configs import DenoiserTrainConfig, VAETrainConfig
@@ -135,6 +162,24 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     g.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
     g.set_defaults(func=cmd_generate)
+
+    e = sub.add_parser("edit", help="zero-shot edit by attention modulation; writes NPY, BVH and a side-by-side MP4")
+    e.add_argument("source", help="source prompt")
+    e.add_argument("target", nargs="?", default=None, help="target prompt (swap, refine)")
+    e.add_argument("--mode", choices=("swap", "refine", "reweight", "mirror"), default="swap")
+    e.add_argument("-o", "--output", required=True, help="output directory")
+    e.add_argument("--tau", type=float, default=None, help="share of T led by the source maps (swap: 0.8)")
+    e.add_argument("--reweight", action="append", metavar="WORD=SCALE", help="scale a word's attention (-3..3)")
+    e.add_argument("--mirror", choices=("lower", "upper", "all"), default=None)
+    e.add_argument("--self-inject", type=float, default=0.2, help="share of steps with source self-attention")
+    e.add_argument("--seconds", default=None)
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--steps", type=int, default=50)
+    e.add_argument("--cfg", type=float, default=7.5)
+    e.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
+    e.add_argument("--model", default=None)
+    e.add_argument("--fp32", action="store_true")
+    e.set_defaults(func=cmd_edit)
 
     t = sub.add_parser("train", help="train the VAE, the denoiser or the evaluator")
     t.add_argument("what", choices=("vae", "denoiser", "evaluator"))

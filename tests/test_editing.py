@@ -181,3 +181,19 @@ def test_edit_input_errors(tiny_model):
         pipe.edit("a person walks", "a person walks fast", mode="swap", steps=2)
     with pytest.raises(ValueError, match="not a word"):
         pipe.edit("a person walks", mode="reweight", reweight={"jumps": 2.0}, steps=2)
+
+
+def test_cli_edit_writes_npy_bvh_and_side_by_side(tiny_model, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+    import imageio.v3 as iio
+    repo = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-m", "salad.cli", "edit", "a person waves their left hand", "--mode", "mirror",
+                          "--mirror", "upper", "--model", str(tiny_model), "--seconds", "1.2", "--steps", "3",
+                          "-o", str(tmp_path / "e")], cwd=repo, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    for f in ("source.npy", "edited.npy", "source.bvh", "edited.bvh", "side_by_side.mp4"):
+        assert (tmp_path / "e" / f).stat().st_size > 0
+    frames = iio.imread(tmp_path / "e" / "side_by_side.mp4", plugin="FFMPEG")
+    assert frames.shape[0] == 24 and frames.shape[2] > frames.shape[1]
