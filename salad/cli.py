@@ -99,6 +99,15 @@ def cmd_edit(a) -> int:
     return 0
 
 
+def cmd_bench(a) -> int:
+    from .bench import bench, format_table
+    models = tuple(a.models.split(","))
+    report = bench(Path(a.out), models=models, batches=tuple(int(b) for b in a.batches.split(",")), quick=a.quick)
+    print(format_table(report))
+    print(f"\nwrote {a.out}")
+    return 0
+
+
 def cmd_train(a) -> int:
     from .config import load_toml
     from .training.configs import DenoiserTrainConfig, VAETrainConfig
@@ -180,6 +189,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--model", default=None)
     e.add_argument("--fp32", action="store_true")
     e.set_defaults(func=cmd_edit)
+
+    bn = sub.add_parser("bench", help="measure generation speed, solver accuracy and where the time goes")
+    bn.add_argument("--out", default="bench.json")
+    bn.add_argument("--models", default="embedded,paper", help="comma list: embedded, paper, or a model dir")
+    bn.add_argument("--batches", default="1,16")
+    bn.add_argument("--quick", action="store_true", help="one repeat per setting")
+    bn.set_defaults(func=cmd_bench)
 
     t = sub.add_parser("train", help="train the VAE, the denoiser or the evaluator")
     t.add_argument("what", choices=("vae", "denoiser", "evaluator"))

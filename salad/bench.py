@@ -1,0 +1,195 @@
+"""`salad bench`: speed of generation on this machine, measured, never assumed.
+
+For each model (the embedded one, and the paper-size denoiser with random weights)
+and precision (fp32, bf16) it times text -> joints for a 6 s motion (120 frames,
+50 DDIM steps, classifier-free guidance) at batch 1 and 16, in a fresh subprocess so
+that peak memory is that configuration's own. It also measures this machine's matmul
+peak in the same run, the denoiser's achieved GFLOP/s, DPM-Solver++ against DDIM at
+matched accuracy, and a profile of where the time goes.
+"""
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+SECONDS = 6.0   # 120 frames
+
+
+def matmul_peak(dtype: torch.dtype, n: int = 2048, repeats: int = 5) -> float:
+    """GFLOP/s of a large square matmul."""
+    a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
+    a @ b
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - t)
+    return 2 * n ** 3 / best / 1e9
+
+
+def _paper_pipeline(bf16: bool):
+    """The paper-size denoiser (d=256, 8 heads, 5 layers) with random weights around the
+    embedded VAE and text encoder, or tiny stand-ins when no model is installed."""
+    from .diffusion.schedule import NoiseSchedule
+    from .models.denoiser import Denoiser, DenoiserConfig
+    from .models.text import load_text_encoder
+    from .models.vae import MotionVAE
+    from .motion.representation import Normalizer
+    from .pipeline import Pipeline
+    import numpy as np
+    enc = load_text_encoder("minilm")
+    torch.manual_seed(0)
+    den = Denoiser(DenoiserConfig(text_dim=enc.dim))
+    norm = Normalizer(np.zeros(263, np.float32), np.ones(263, np.float32))
+    return Pipeline(MotionVAE(), norm, 1.0, den, enc, NoiseSchedule(), canvas_frames=196, bf16=bf16)
+
+
+def _load(model: str, bf16: bool):
+    from .pipeline import load_pipeline
+    return _paper_pipeline(bf16) if model == "paper" else load_pipeline(None if model == "embedded" else model, bf16=bf16)
+
+
+def _denoiser_flops(pipe, batch: int, seconds: float) -> float:
+    """FLOPs of one batched CFG forward of the denoiser (2 x batch rows)."""
+    from torch.utils.flop_counter import FlopCounterMode
+    text = pipe.encode_text([""] * batch + ["a person walks"] * batch)
+    x = torch.randn(2 * batch, pipe.frames_for(seconds) // 4, 7, pipe.denoiser.config.latent_dim)
+    t = torch.full((2 * batch,), 500)
+    with FlopCounterMode(display=False) as fc, torch.no_grad():
+        pipe.model_fn(text, auto=False)(x, t)
+    return float(fc.get_total_flops())
+
+
+def run_one(model: str, bf16: bool, batch: int, sampler: str = "ddim", steps: int = 50, repeats: int = 3,
+            seconds: float = SECONDS) -> dict:
+    """Time one configuration in this process (called in a subprocess by `bench`)."""
+    pipe = _load(model, bf16)
+    if bf16 and not pipe.bf16:
+        return {"skipped": "bf16 is not supported on this CPU"}
+    prompt = "a person walks forward and waves their right hand"
+    pipe.generate(prompt, seconds=seconds, steps=2, batch=batch)          # warm-up: caches, kernels
+    times = []
+    for r in range(repeats):
+        t = time.perf_counter()
+        pipe.generate(prompt, seconds=seconds, seed=r, steps=steps, sampler=sampler, batch=batch)
+        times.append(time.perf_counter() - t)
+    best = min(times)
+    flops = _denoiser_flops(pipe, batch, seconds) * steps
+    return {"model": model, "precision": "bf16" if bf16 else "fp32", "batch": batch, "sampler": sampler,
+            "steps": steps, "seconds_per_call": best, "ms_per_motion": 1000 * best / batch,
+            "motions_per_s": batch / best, "denoiser_gflops": flops / 1e9,
+            "achieved_gflop_s": flops / best / 1e9,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "params_m": sum(p.numel() for p in pipe.denoiser.parameters()) / 1e6}
+
+
+def solver_accuracy(model: str, bf16: bool, seeds: int = 4, ddim_steps=(10, 20, 50), dpm_steps=(5, 8, 10, 15, 20),
+                    reference_steps: int = 250) -> dict:
+    """Mean joint error (m) of each sampler setting against a 250-step DDIM solution of the
+    same noise: how closely each one solves the same ODE."""
+    import numpy as np
+    pipe = _load(model, bf16)
+    prompt = "a person walks forward and waves their right hand"
+    ref = [pipe.generate(prompt, seconds=SECONDS, seed=s, steps=reference_steps).joints for s in range(seeds)]
+
+    def err(sampler, steps):
+        out = [pipe.generate(prompt, seconds=SECONDS, seed=s, steps=steps, sampler=sampler).joints
+               for s in range(seeds)]
+        return float(np.mean([np.linalg.norm(o - r, axis=-1).mean() for o, r in zip(out, ref)]))
+
+    table = {f"ddim-{k}": err("ddim", k) for k in ddim_steps}
+    table.update({f"dpm-{k}": err("dpm", k) for k in dpm_steps})
+    target = table["ddim-50"]
+    matched = next((k for k in dpm_steps if table[f"dpm-{k}"] <= target), None)
+    return {"error_vs_ddim250_m": table, "dpm_steps_matching_ddim50": matched}
+
+
+def profile(model: str, bf16: bool, top: int = 12) -> list[dict]:
+    """Where one batch-1 generation spends its time, by operator."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as tprofile
+    pipe = _load(model, bf16)
+    pipe.generate("a person walks", seconds=SECONDS, steps=2)
+    with tprofile(activities=[ProfilerActivity.CPU]) as prof:
+        pipe.generate("a person walks forward", seconds=SECONDS, steps=50)
+    rows = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)[:top]
+    total = sum(e.self_cpu_time_total for e in prof.key_averages())
+    return [{"op": e.key, "self_ms": e.self_cpu_time_total / 1000, "share": e.self_cpu_time_total / total,
+             "calls": e.count} for e in rows]
+
+
+def _subprocess(fn: str, **kw) -> dict:
+    code = (f"import json, sys; from salad.bench import {fn}; "
+            f"print('RESULT' + json.dumps({fn}(**json.loads(sys.argv[1]))))")
+    out = subprocess.run([sys.executable, "-c", code, json.dumps(kw)], capture_output=True, text=True,
+                         env={**os.environ})
+    line = next((l for l in out.stdout.splitlines() if l.startswith("RESULT")), None)
+    if line is None:
+        return {"error": out.stderr.strip().splitlines()[-1] if out.stderr.strip() else f"exit {out.returncode}"}
+    return json.loads(line[6:])
+
+
+def bench(out: Path, models=("embedded", "paper"), batches=(1, 16), quick: bool = False,
+          seconds: float = SECONDS) -> dict:
+    peak = {"fp32": matmul_peak(torch.float32), "bf16": matmul_peak(torch.bfloat16)}
+    runs = []
+    for model in models:
+        for bf16 in (False, True):
+            for batch in batches:
+                r = _subprocess("run_one", model=model, bf16=bf16, batch=batch, repeats=1 if quick else 3,
+                                seconds=seconds)
+                r.update(model=model, precision="bf16" if bf16 else "fp32", batch=batch)
+                if "achieved_gflop_s" in r:
+                    r["share_of_matmul_peak"] = r["achieved_gflop_s"] / peak[r["precision"]]
+                runs.append(r)
+    report = {"machine": {"cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads(),
+                          "matmul_peak_gflop_s": peak},
+              "motion": {"seconds": seconds, "cfg": 7.5}, "runs": runs}
+    if "embedded" in models:
+        acc = _subprocess("solver_accuracy", model="embedded", bf16=True, seeds=2 if quick else 4)
+        report["solver_accuracy"] = acc
+        k = acc.get("dpm_steps_matching_ddim50")
+        if k:
+            fast = _subprocess("run_one", model="embedded", bf16=True, batch=1, sampler="dpm", steps=k,
+                               repeats=1 if quick else 3)
+            report["fast_solver"] = fast
+        report["profile_embedded_bf16_batch1"] = _subprocess("profile", model="embedded", bf16=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    from .checkpoint import atomic_write_text
+    atomic_write_text(out, json.dumps(report, indent=2))
+    return report
+
+
+def format_table(report: dict) -> str:
+    lines = [f"matmul peak: fp32 {report['machine']['matmul_peak_gflop_s']['fp32']:.0f} GFLOP/s, "
+             f"bf16 {report['machine']['matmul_peak_gflop_s']['bf16']:.0f} GFLOP/s "
+             f"({report['machine']['cores']} cores)", "",
+             f"{'model':10s} {'prec':5s} {'batch':>5s} {'ms/motion':>10s} {'motions/s':>10s} {'GFLOP/s':>8s} "
+             f"{'% peak':>7s} {'peak MB':>8s}"]
+    for r in report["runs"]:
+        if "ms_per_motion" not in r:
+            lines.append(f"{r['model']:10s} {r['precision']:5s} {r['batch']:>5d}  {r.get('error') or r.get('skipped')}")
+            continue
+        lines.append(f"{r['model']:10s} {r['precision']:5s} {r['batch']:>5d} {r['ms_per_motion']:>10.0f} "
+                     f"{r['motions_per_s']:>10.2f} {r['achieved_gflop_s']:>8.1f} "
+                     f"{100 * r['share_of_matmul_peak']:>6.1f}% {r['peak_rss_mb']:>8.0f}")
+    acc = report.get("solver_accuracy")
+    if acc and "error_vs_ddim250_m" in acc:
+        lines += ["", "sampler accuracy (mean joint error vs a 250-step DDIM solution of the same noise):"]
+        lines += [f"  {k:8s} {1000 * v:7.1f} mm" for k, v in acc["error_vs_ddim250_m"].items()]
+        lines.append(f"  DPM-Solver++ steps matching DDIM-50: {acc.get('dpm_steps_matching_ddim50')}")
+    fast = report.get("fast_solver")
+    if fast and "ms_per_motion" in fast:
+        lines.append(f"  embedded bf16 batch 1 with dpm-{fast['steps']}: {fast['ms_per_motion']:.0f} ms/motion")
+    prof = report.get("profile_embedded_bf16_batch1")
+    if isinstance(prof, list):
+        lines += ["", "where the time goes (embedded, bf16, batch 1, 50 steps):"]
+        lines += [f"  {p['op'][:40]:40s} {p['self_ms']:8.1f} ms {100 * p['share']:5.1f}%" for p in prof]
+    return "\n".join(lines)
