@@ -109,6 +109,40 @@ def tiny_dataset(tmp_path_factory) -> Path:
     return write_tiny_dataset(tmp_path_factory.mktemp("tiny-hml"))
 
 
+@pytest.fixture(scope="session")
+def tiny_model(tiny_dataset, tmp_path_factory) -> Path:
+    """A tiny VAE + denoiser trained for a few steps on `tiny_dataset`: a real model directory
+    that loads with load_pipeline, built once per test session."""
+    from salad.diffusion.schedule import DiffusionConfig
+    from salad.models.denoiser import DenoiserConfig
+    from salad.models.vae import VAEConfig
+    from salad.training.configs import DataConfig, DenoiserTrainConfig, OptimConfig, RunConfig, VAETrainConfig
+    from salad.training.denoiser_task import DenoiserTask
+    from salad.training.loop import Trainer
+    from salad.training.vae_task import VAETask
+
+    root = tmp_path_factory.mktemp("tiny-model")
+    vcfg = VAETrainConfig(data=DataConfig(root=str(tiny_dataset), window=16),
+                          model=VAEConfig(latent_dim=8, dropout=0.0),
+                          optim=OptimConfig(lr=1e-3, warmup_steps=2, batch_size=4, max_steps=4),
+                          run=RunConfig(out_dir=str(root / "vae-run"), bf16=False, checkpoint_every=4))
+    Trainer(VAETask(vcfg), vcfg.optim, vcfg.run).fit()
+    dcfg = DenoiserTrainConfig(
+        data=DataConfig(root=str(tiny_dataset), max_frames=40),
+        model=DenoiserConfig(latent_dim=8, dim=32, heads=4, ff_dim=64, layers=3, text_dim=384),
+        diffusion=DiffusionConfig(),
+        optim=OptimConfig(lr=1e-3, warmup_steps=2, batch_size=4, max_steps=4),
+        run=RunConfig(out_dir=str(root / "den-run"), bf16=True, checkpoint_every=4),
+        vae=str(root / "vae-run" / "model"))
+    task = DenoiserTask(dcfg, show_progress=False)
+    Trainer(task, dcfg.optim, dcfg.run, ema_decay=dcfg.ema_decay).fit()
+    model = root / "model"
+    model.mkdir()
+    (model / "vae").symlink_to(root / "vae-run" / "model")
+    (model / "denoiser").symlink_to(root / "den-run" / "model")
+    return model
+
+
 BANDAI_SUBSET = (
     "Bandai-Namco-Research-Motiondataset-1/data/dataset-1_bye_happy_001",
     "Bandai-Namco-Research-Motiondataset-1/data/dataset-1_walk_normal_002",

@@ -8,40 +8,9 @@ import pytest
 import torch
 
 from salad.checkpoint import CheckpointError
-from salad.diffusion.schedule import DiffusionConfig
-from salad.models.denoiser import DenoiserConfig
-from salad.models.vae import VAEConfig
 from salad.pipeline import end_of_motion, load_pipeline
-from salad.training.configs import DataConfig, DenoiserTrainConfig, OptimConfig, RunConfig, VAETrainConfig
-from salad.training.denoiser_task import DenoiserTask
-from salad.training.loop import Trainer
-from salad.training.vae_task import VAETask
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def tiny_model(tiny_dataset, tmp_path_factory):
-    root = tmp_path_factory.mktemp("tiny-model")
-    vcfg = VAETrainConfig(data=DataConfig(root=str(tiny_dataset), window=16),
-                          model=VAEConfig(latent_dim=8, dropout=0.0),
-                          optim=OptimConfig(lr=1e-3, warmup_steps=2, batch_size=4, max_steps=4),
-                          run=RunConfig(out_dir=str(root / "vae-run"), bf16=False, checkpoint_every=4))
-    Trainer(VAETask(vcfg), vcfg.optim, vcfg.run).fit()
-    dcfg = DenoiserTrainConfig(
-        data=DataConfig(root=str(tiny_dataset), max_frames=40),
-        model=DenoiserConfig(latent_dim=8, dim=32, heads=4, ff_dim=64, layers=3, text_dim=384),
-        diffusion=DiffusionConfig(),
-        optim=OptimConfig(lr=1e-3, warmup_steps=2, batch_size=4, max_steps=4),
-        run=RunConfig(out_dir=str(root / "den-run"), bf16=True, checkpoint_every=4),
-        vae=str(root / "vae-run" / "model"))
-    task = DenoiserTask(dcfg, show_progress=False)
-    Trainer(task, dcfg.optim, dcfg.run, ema_decay=dcfg.ema_decay).fit()
-    model = root / "model"
-    model.mkdir()
-    (model / "vae").symlink_to(root / "vae-run" / "model")
-    (model / "denoiser").symlink_to(root / "den-run" / "model")
-    return model
 
 
 def test_generate_fixed_and_auto_length(tiny_model):

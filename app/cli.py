@@ -1,0 +1,53 @@
+"""`python -m app`: start the studio."""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+from pathlib import Path
+
+from .settings import Settings, default_host, default_port
+
+
+def parse_args(argv: list[str] | None = None) -> Settings:
+    p = argparse.ArgumentParser(prog="python -m app", description="The salad motion studio (Gradio).")
+    p.add_argument("--model", metavar="DIR", default=None,
+                   help="model directory with vae/ and denoiser/ (default: $SALAD_MODEL, else assets/model)")
+    p.add_argument("--host", default=default_host(),
+                   help="address to bind (default 127.0.0.1, or $GRADIO_SERVER_NAME); 0.0.0.0 exposes the studio")
+    p.add_argument("--port", type=int, default=default_port(), help="port (default 7860, or $GRADIO_SERVER_PORT)")
+    p.add_argument("--concurrency", type=int, default=2, help="jobs served at once (default 2; sampling is serialised)")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
+    p.add_argument("--tmp-dir", type=Path, default=None, help="where the studio's temp folder goes (default: $TMPDIR)")
+    p.add_argument("--session-ttl", type=float, default=7200.0,
+                   help="seconds after which an idle session and its files are removed (default 7200)")
+    a = p.parse_args(argv)
+    try:
+        return Settings(model=a.model, host=a.host, port=a.port, concurrency=a.concurrency, threads=a.threads,
+                        bf16=not a.fp32, tmp_dir=a.tmp_dir, session_ttl_s=a.session_ttl)
+    except ValueError as exc:
+        p.error(str(exc))
+
+
+def _stop(signum, frame):
+    # Let Gradio shut down as on Ctrl-C, so the workspace is removed on the way out.
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    settings = parse_args(argv)
+    from .server import create_app, launch
+
+    app = create_app(settings)
+    signal.signal(signal.SIGTERM, _stop)
+    try:
+        print(f"salad studio on http://{settings.host}:{settings.port}", file=sys.stderr, flush=True)
+        launch(app, settings, block=True)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        app.close()
+    return 0

@@ -1,0 +1,101 @@
+"""Assemble and serve the studio: workspace, pipeline (or an error page), Gradio queue and server."""
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+from .settings import Settings
+from .workspace import Workspace
+
+log = logging.getLogger("salad.studio")
+MAX_UPLOAD = "1mb"     # the studio takes no uploads; this bounds what the upload route accepts
+
+
+@dataclass
+class StudioApp:
+    demo: "object"               # gr.Blocks
+    workspace: Workspace
+    studio: "object | None"      # Studio, or None when no model could be loaded
+    error: str | None = None
+
+    def close(self) -> None:
+        try:
+            self.demo.close()
+        finally:
+            self.workspace.close()
+
+
+def _warm_up() -> None:
+    from salad.render import warm_up
+
+    try:
+        backend = warm_up()
+        log.info("renderer ready (%s)", backend)
+    except Exception:       # renders will then report the problem per request
+        log.exception("renderer warm-up failed")
+
+
+def _load(settings: Settings):
+    from salad.pipeline import load_pipeline
+
+    try:
+        return load_pipeline(settings.model, bf16=settings.bf16, threads=settings.threads), None
+    except Exception as exc:     # any failure to load becomes the error page, not a crash
+        log.error("no model: %s", exc)
+        return None, f"{type(exc).__name__}: {exc}"
+
+
+def create_app(settings: Settings, pipe=None) -> StudioApp:
+    """Build the studio (or, without a loadable model, the error page) around a fresh workspace.
+    `pipe` skips loading when a pipeline is already at hand."""
+    workspace = Workspace(settings.tmp_dir, ttl_s=settings.session_ttl_s)
+    # Gradio copies every file it serves into its cache; keep that cache inside our root.
+    os.environ["GRADIO_TEMP_DIR"] = str(workspace.gradio_cache)
+    try:
+        from .studio import Studio
+        from .ui.layout import build_error_page, build_studio
+
+        error = None
+        if pipe is None:
+            pipe, error = _load(settings)
+        if pipe is None:
+            return StudioApp(build_error_page(error), workspace, None, error)
+        studio = Studio(pipe, workspace)
+        demo = build_studio(studio, settings)
+        demo.queue(default_concurrency_limit=settings.concurrency, max_size=settings.queue_size)
+        return StudioApp(demo, workspace, studio)
+    except BaseException:
+        workspace.close()
+        raise
+
+
+def _outside(path: Path, parent: str) -> bool:
+    try:
+        path.relative_to(Path(parent).resolve())
+        return False
+    except ValueError:
+        return True
+
+
+def launch(app: StudioApp, settings: Settings, block: bool = True) -> str:
+    """Serve `app` on settings.host:port (no share link); returns the local URL. With
+    block=False the server runs in background threads until app.close()."""
+    from .ui.layout import CSS, THEME
+
+    if app.studio is not None:
+        app.workspace.start_janitor(settings.prune_every_s)
+        threading.Thread(target=_warm_up, name="render-warm-up", daemon=True).start()
+    # Returned files must lie under the temp dir or the working directory to be served,
+    # unless allowed; allow exactly the sessions folder when it lies elsewhere.
+    root = app.workspace.sessions
+    allowed = [str(root)] if _outside(root, tempfile.gettempdir()) and _outside(root, os.getcwd()) else None
+    _, url, _ = app.demo.launch(
+        server_name=settings.host, server_port=settings.port, share=False, prevent_thread_lock=not block,
+        show_error=False, allowed_paths=allowed, max_file_size=MAX_UPLOAD, ssr_mode=False, pwa=False,
+        mcp_server=False, enable_monitoring=False, quiet=True, theme=THEME, css=CSS,
+        footer_links=["api"], state_session_capacity=1000)
+    return url

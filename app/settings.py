@@ -1,0 +1,57 @@
+"""Run-time settings of the studio and the limits its inputs are checked against."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 7860
+
+# Input limits. The pipeline accepts wider ranges; the studio keeps requests within what a
+# 2-core CPU answers in reasonable time.
+MAX_STEPS = 200
+DEFAULT_STEPS = 50
+MAX_CFG = 15.0
+DEFAULT_CFG = 7.5
+MAX_SEED = 2**31 - 1
+DEFAULT_SECONDS = 4.0
+SECONDS_STEP = 0.2          # frames come in multiples of 4 at 20 fps
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How the studio is started. `model=None` means $SALAD_MODEL or the embedded model."""
+
+    model: str | None = None
+    host: str = DEFAULT_HOST
+    port: int = DEFAULT_PORT
+    concurrency: int = 2            # simultaneous jobs; sampling itself is serialised
+    queue_size: int = 32            # waiting jobs beyond this are refused
+    session_ttl_s: float = 2 * 3600  # idle sessions and their files are removed after this
+    prune_every_s: float = 600
+    tmp_dir: Path | None = None     # parent of the studio's private temp root
+    threads: int | None = None      # torch threads; None keeps torch's default
+    bf16: bool = True
+
+    def __post_init__(self):
+        if not 1 <= self.port <= 65535:
+            raise ValueError(f"port must be in 1..65535, got {self.port}")
+        if not 1 <= self.concurrency <= 8:
+            raise ValueError(f"concurrency must be in 1..8, got {self.concurrency}")
+        if self.queue_size < 1:
+            raise ValueError(f"queue size must be positive, got {self.queue_size}")
+        if self.session_ttl_s <= 0 or self.prune_every_s <= 0:
+            raise ValueError("session ttl and prune interval must be positive")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be positive, got {self.threads}")
+
+
+def default_host() -> str:
+    """127.0.0.1, unless GRADIO_SERVER_NAME says otherwise (Hugging Face Spaces sets it to 0.0.0.0)."""
+    return os.environ.get("GRADIO_SERVER_NAME") or DEFAULT_HOST
+
+
+def default_port() -> int:
+    value = os.environ.get("GRADIO_SERVER_PORT")
+    return int(value) if value and value.isdigit() else DEFAULT_PORT

@@ -1,0 +1,1 @@
+"""The studio's Gradio interface: panels, event handlers and the page layout."""

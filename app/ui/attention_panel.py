@@ -1,0 +1,46 @@
+"""The Attention tab: which body parts each word of the prompt steered, over time."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gradio as gr
+
+from ..settings import DEFAULT_STEPS
+
+INTRO = (
+    "Cross-attention of the denoiser between the prompt's words and the 7 body parts, frame by frame, "
+    "captured while the motion was sampled. Pick a word to see its map and the skeleton tinted by it; "
+    "choose which layers and which sampling steps to average.")
+
+
+@dataclass
+class AttentionPanel:
+    word: gr.Radio
+    layers: gr.CheckboxGroup
+    first_step: gr.Slider
+    last_step: gr.Slider
+    heatmap: gr.Plot
+    video: gr.Video
+    overview: gr.Plot
+    downloads: gr.File
+
+    @property
+    def inputs(self) -> list:
+        return [self.word, self.layers, self.first_step, self.last_step]
+
+
+def build_attention_panel() -> AttentionPanel:
+    gr.Markdown(INTRO)
+    word = gr.Radio([], label="Word (generate a motion first)", elem_id="word-chips")
+    with gr.Row():
+        layers = gr.CheckboxGroup([], label="Layers", scale=2, min_width=200)
+        first_step = gr.Slider(1, DEFAULT_STEPS, value=1, step=1, label="First step (1 = noisiest)", scale=1)
+        last_step = gr.Slider(1, DEFAULT_STEPS, value=DEFAULT_STEPS, step=1, label="Last step", scale=1)
+    with gr.Row(equal_height=True):
+        heatmap = gr.Plot(label="The word's attention over body parts and time", elem_id="word-heatmap")
+        video = gr.Video(label="Joints tinted by the word's attention", autoplay=True, loop=True,
+                         interactive=False, elem_id="word-video")
+    overview = gr.Plot(label="All words on one colour scale", elem_id="attention-overview")
+    downloads = gr.File(label="Attention maps: NPZ (this aggregation + raw per step and layer) and PNG",
+                        file_count="multiple", interactive=False, elem_id="attention-downloads")
+    return AttentionPanel(word, layers, first_step, last_step, heatmap, video, overview, downloads)

@@ -1,0 +1,69 @@
+"""The Generate tab: prompt and sampling controls, the skeleton viewer and the downloads."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gradio as gr
+
+from salad.motion.representation import FPS
+from salad.pipeline import MAX_PROMPT_CHARS, MIN_AUTO_FRAMES
+
+from ..examples import EXAMPLE_PROMPTS
+from ..settings import DEFAULT_CFG, DEFAULT_SECONDS, DEFAULT_STEPS, MAX_CFG, MAX_SEED, MAX_STEPS, SECONDS_STEP
+
+MIN_SECONDS = MIN_AUTO_FRAMES / FPS    # the pipeline's shortest motion
+
+
+@dataclass
+class GeneratePanel:
+    prompt: gr.Textbox
+    auto_length: gr.Checkbox
+    seconds: gr.Slider
+    seed: gr.Number
+    steps: gr.Slider
+    cfg: gr.Slider
+    sampler: gr.Radio
+    button: gr.Button
+    video: gr.Video
+    skeleton: gr.Plot
+    summary: gr.Markdown
+    downloads: gr.File
+
+    @property
+    def inputs(self) -> list:
+        return [self.prompt, self.auto_length, self.seconds, self.seed, self.steps, self.cfg, self.sampler]
+
+
+def build_generate_panel(max_seconds: float) -> GeneratePanel:
+    longest = max(MIN_SECONDS, float(max_seconds))
+    with gr.Row(equal_height=False):
+        with gr.Column(scale=2, min_width=320):
+            prompt = gr.Textbox(label="Prompt", lines=2, max_lines=4, max_length=MAX_PROMPT_CHARS,
+                                placeholder="a person waves their right hand happily", elem_id="prompt")
+            gr.Examples(examples=[[p] for p in EXAMPLE_PROMPTS], inputs=[prompt], examples_per_page=8,
+                        label="Examples: motions and styles the model was trained on", cache_examples=False,
+                        api_name="load_example")
+            with gr.Row():
+                auto_length = gr.Checkbox(value=True, label="Automatic length", scale=1, min_width=140,
+                                          info="the model decides when the motion ends")
+                seconds = gr.Slider(MIN_SECONDS, longest, value=min(DEFAULT_SECONDS, longest), step=SECONDS_STEP,
+                                    label="Seconds", interactive=False, scale=2, elem_id="seconds")
+            with gr.Accordion("Sampling", open=False):
+                seed = gr.Number(value=0, precision=0, minimum=0, maximum=MAX_SEED, label="Seed")
+                steps = gr.Slider(1, MAX_STEPS, value=DEFAULT_STEPS, step=1, label="Diffusion steps")
+                cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)",
+                                info="higher follows the text more closely")
+                sampler = gr.Radio(["ddim", "dpm"], value="ddim", label="Sampler",
+                                   info="DPM-Solver++ needs fewer steps (about 20)")
+            button = gr.Button("Generate", variant="primary", elem_id="generate-button")
+        with gr.Column(scale=3, min_width=360):
+            with gr.Row(equal_height=True):
+                video = gr.Video(label="Skeleton video", autoplay=True, loop=True, interactive=False,
+                                 elem_id="motion-video")
+                skeleton = gr.Plot(label="3D view: drag to orbit, slide through the frames",
+                                   elem_id="skeleton-plot")
+            summary = gr.Markdown(elem_id="summary")
+            downloads = gr.File(label="Downloads: MP4 video, BVH (Blender), NPY joints, NPZ joints + features",
+                                file_count="multiple", interactive=False, elem_id="downloads")
+    return GeneratePanel(prompt, auto_length, seconds, seed, steps, cfg, sampler, button, video, skeleton,
+                         summary, downloads)

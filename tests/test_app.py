@@ -1,0 +1,356 @@
+"""The studio end to end through its API (gradio_client), on the tiny trained model: generation,
+attention views, validation, concurrent sessions, served files, the no-model page, and the
+studio's own pieces (validation, caching, clean-up) directly."""
+import base64
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import app  # noqa: F401  (switches analytics and hub look-ups off before gradio is imported)
+import httpx
+import numpy as np
+import pytest
+from gradio_client import Client
+from gradio_client.exceptions import AppError
+
+from salad.editing.store import AttentionMaps
+from salad.pipeline import load_pipeline
+
+from app.figures import frames_to_restyle_slider
+from app.server import create_app, launch
+from app.session import KEEP_RESULTS, Result, Session
+from app.settings import Settings
+from app.studio import Studio, file_stem, word_tint
+from app.ui.handlers import word_choices
+from app.validation import GenerateRequest, parse_attention, parse_generate
+from app.workspace import Workspace
+from conftest import synthetic_walk
+
+REPO = Path(__file__).resolve().parents[1]
+STEPS = 6
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def pipe(tiny_model):
+    return load_pipeline(tiny_model)
+
+
+@pytest.fixture(scope="module")
+def server(pipe, tmp_path_factory):
+    settings = Settings(port=free_port(), tmp_dir=tmp_path_factory.mktemp("studio"), concurrency=2)
+    studio_app = create_app(settings, pipe=pipe)
+    url = launch(studio_app, settings, block=False)
+    yield url, studio_app
+    studio_app.close()
+
+
+@pytest.fixture
+def client(server, tmp_path):
+    return Client(server[0], verbose=False, download_files=str(tmp_path), analytics_enabled=False)
+
+
+def generate(client, prompt, seconds=1.6, seed=0, steps=STEPS, cfg=7.5, sampler="ddim"):
+    return client.predict(prompt, seconds is None, seconds, seed, steps, cfg, sampler, api_name="/generate")
+
+
+def plotly_array(value) -> np.ndarray:
+    """A data array of a Plotly figure's JSON: a list, or base64 binary ({"dtype", "bdata", "shape"})."""
+    if isinstance(value, dict) and "bdata" in value:
+        arr = np.frombuffer(base64.b64decode(value["bdata"]), dtype=value["dtype"])
+        return arr.reshape([int(n) for n in str(value.get("shape", len(arr))).split(",")])
+    return np.asarray(value, dtype=float)
+
+
+def mp4_frames(path) -> np.ndarray:
+    import imageio.v2 as imageio
+
+    with imageio.get_reader(path, format="FFMPEG") as reader:
+        return np.stack([frame for frame in reader.iter_data()])
+
+
+# ---------------------------------------------------------------- the API
+
+def test_generate_returns_video_figure_and_files(client, pipe):
+    out = generate(client, "a person waves their right hand happily", seconds=1.6, seed=3)
+    video, skeleton, summary, files, words, layers, first, last, heatmap, word_video = out
+    frames = mp4_frames(video)
+    assert frames.shape == (32, 448, 448, 3) and frames.std() > 5, "a decodable, non-blank 32-frame video"
+    assert skeleton["type"] == "plotly"
+    fig = json.loads(skeleton["plot"])
+    steps = fig["layout"]["sliders"][0]["steps"]
+    assert len(steps) == 32 and steps[5]["method"] == "restyle" and not fig.get("frames")
+    assert "happily" in summary and "32 frames" in summary and "seed 3" in summary
+    by_ext = {Path(f).suffix: Path(f) for f in files}
+    assert sorted(by_ext) == [".bvh", ".mp4", ".npy", ".npz"]
+    joints = np.load(by_ext[".npy"])
+    assert joints.shape == (32, 22, 3) and joints.dtype == np.float32 and np.isfinite(joints).all()
+    with np.load(by_ext[".npz"]) as z:
+        np.testing.assert_array_equal(z["joints"], joints)
+        assert z["features"].shape == (32, 263)
+    assert by_ext[".bvh"].read_text().startswith("HIERARCHY")
+    expected = pipe.generate("a person waves their right hand happily", seconds=1.6, seed=3, steps=STEPS,
+                             return_attention=True)
+    np.testing.assert_allclose(joints, expected.joints, atol=1e-3)
+    assert [c[0] for c in words["choices"]] == ["a", "person", "waves", "their", "right", "hand", "happily"]
+    assert layers["value"] == [0, 1, 2] and (first["value"], last["value"]) == (1, STEPS)
+    assert heatmap is None and word_video is None
+
+
+def test_attention_views_follow_word_layers_and_steps(client):
+    generate(client, "a person raises their left hand", seconds=1.2, seed=1)
+    heatmap, overview, files = client.predict("left", [0, 1, 2], 1, STEPS, api_name="/attention")
+    h = json.loads(heatmap["plot"])
+    assert h["data"][0]["type"] == "heatmap" and "left" in h["layout"]["title"]["text"]
+    z = plotly_array(h["data"][0]["z"])
+    assert z.shape == (7, 24) and (z >= 0).all()
+    o = json.loads(overview["plot"])
+    assert len([t for t in o["data"] if t["type"] == "heatmap"]) == 6
+    npz, png = sorted(files, key=lambda f: Path(f).suffix)
+    assert Path(png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with np.load(npz) as a:
+        assert a["attention"].shape == (6, 7, 24) and list(a["words"])[4] == "left"
+        np.testing.assert_allclose(a["attention"][4], z, atol=1e-6)
+        assert a["raw"].shape[:2] == (STEPS, 3)
+
+    # Another aggregation gives other numbers; a word given by index is the same word.
+    h2, _, files2 = client.predict(4, [1], 2, 4, api_name="/attention")
+    z2 = plotly_array(json.loads(h2["plot"])["data"][0]["z"])
+    assert z2.shape == z.shape and not np.allclose(z2, z)
+    assert {Path(f).name for f in files2}.isdisjoint({Path(f).name for f in files})
+
+    tinted = mp4_frames(client.predict("left", [0, 1, 2], 1, STEPS, api_name="/attention_video"))
+    assert tinted.shape == (24, 448, 448, 3)
+    assert client.predict(None, [0, 1, 2], 1, STEPS, api_name="/attention_video") is None
+
+
+@pytest.mark.parametrize("args, message", [
+    (("", True, 1.0, 0, STEPS, 7.5, "ddim"), "prompt is empty"),
+    (("x" * 400, True, 1.0, 0, STEPS, 7.5, "ddim"), "limit is 300"),
+    (("a person walks", False, 100.0, 0, STEPS, 7.5, "ddim"), "seconds must be between 0.8 and 2"),
+    (("a person walks", False, "soon", 0, STEPS, 7.5, "ddim"), "seconds must be a number"),
+    (("a person 🕺 dances", True, 1.0, 0, STEPS, 7.5, "ddim"), "cannot read “🕺”"),
+    (("a person walks", True, 1.0, -1, STEPS, 7.5, "ddim"), "seed must be between 0 and 2147483647"),
+    (("a person walks", True, 1.0, 1.5, STEPS, 7.5, "ddim"), "seed must be a whole number"),
+    (("a person walks", True, 1.0, 0, 100000, 7.5, "ddim"), "steps must be between 1 and 200"),
+    (("a person walks", True, 1.0, 0, STEPS, 1e9, "ddim"), "CFG scale must be between 0 and 15"),
+    (("a person walks", True, 1.0, 0, STEPS, 7.5, "euler"), "sampler must be one of ddim, dpm"),
+    ((["a person walks"], True, 1.0, 0, STEPS, 7.5, "ddim"), "prompt must be a string"),
+    (("a person walks", "yes", 1.0, 0, STEPS, 7.5, "ddim"), "automatic length must be true or false"),
+])
+def test_bad_generate_inputs_are_reported(client, args, message):
+    with pytest.raises(AppError, match=message):
+        client.predict(*args, api_name="/generate")
+
+
+def test_bad_attention_requests_are_reported_and_the_server_keeps_serving(client):
+    with pytest.raises(AppError, match="generate a motion first"):
+        client.predict("walks", [0], 1, STEPS, api_name="/attention")
+    generate(client, "someone walks and turns left", seconds=1.0, seed=2)
+    for args, message in ((("jumps", [0], 1, STEPS), "not a word of the prompt"),
+                          ((99, [0], 1, STEPS), "word must be between 0 and 4"),
+                          (("walks", [], 1, STEPS), "at least one layer"),
+                          (("walks", [7], 1, STEPS), "layer must be between 0 and 2"),
+                          (("walks", "0", 1, STEPS), "layers must be a list"),
+                          (("walks", [0], 4, 2), "comes after the last step"),
+                          (("walks", [0], 1, STEPS + 1), f"last step must be between 1 and {STEPS}")):
+        with pytest.raises(AppError, match=message):
+            client.predict(*args, api_name="/attention")
+    heatmap, _, _ = client.predict("walks", [0], 1, STEPS, api_name="/attention")
+    assert heatmap["type"] == "plotly"
+
+
+def test_eight_simultaneous_sessions_get_their_own_motions(server, pipe, tmp_path):
+    url, studio_app = server
+    jobs = [(f"a person {verb}", seconds, seed) for verb, seconds, seed in (
+        ("walks forward", 0.8, 11), ("runs forward", 1.0, 12), ("waves their left hand", 1.2, 13),
+        ("waves their right hand", 1.4, 14), ("bows", 1.6, 15), ("kicks", 1.8, 16), ("dances", 2.0, 17),
+        ("raises both hands", None, 18))]
+    expected = [pipe.generate(p, seconds=s, seed=seed, steps=STEPS, return_attention=True).joints
+                for p, s, seed in jobs]
+
+    def run(i):
+        c = Client(url, verbose=False, download_files=str(tmp_path / str(i)), analytics_enabled=False)
+        prompt, seconds, seed = jobs[i]
+        out = generate(c, prompt, seconds=seconds, seed=seed)
+        npy = next(f for f in out[3] if f.endswith(".npy"))
+        return np.load(npy), out[2], [w[0] for w in out[4]["choices"]]
+
+    started = time.perf_counter()
+    with ThreadPoolExecutor(8) as pool:
+        results = list(pool.map(run, range(8)))
+    elapsed = time.perf_counter() - started
+    for i, (joints, summary, words) in enumerate(results):
+        prompt, seconds, seed = jobs[i]
+        assert joints.shape == expected[i].shape, f"session {i} got another session's length"
+        np.testing.assert_allclose(joints, expected[i], atol=1e-3, err_msg=f"session {i}")
+        others = [np.abs(joints - e).max() for j, e in enumerate(expected) if j != i and e.shape == joints.shape]
+        assert all(d > 1e-2 for d in others), f"session {i} matches another session's motion"
+        assert f"seed {seed}" in summary and prompt in summary and words == prompt.split()
+    sessions = list(studio_app.workspace.sessions.iterdir())
+    assert len(sessions) >= 8, "one folder per session"
+    print(f"8 sessions served in {elapsed:.1f} s")
+
+
+def test_only_the_studios_outputs_are_served(server, client):
+    url, studio_app = server
+    generate(client, "a person bows", seconds=0.8, seed=5)
+    with httpx.Client(base_url=url, timeout=30) as http:
+        for path in ("/etc/passwd", str(REPO / "pyproject.toml"), str(studio_app.workspace.root / "owner.pid"),
+                     str(next(studio_app.workspace.sessions.rglob("*.npy")))):
+            r = http.get(f"/gradio_api/file={path}")
+            assert r.status_code == 403, path
+        assert http.get("/").status_code == 200
+    assert studio_app.demo.share is False and studio_app.demo.server_name == "127.0.0.1"
+
+
+def test_every_event_has_an_api_name(server):
+    _, studio_app = server
+    names = [fn.api_name for fn in studio_app.demo.fns.values()]
+    assert all(names) and {"generate", "attention", "attention_video"} <= set(names)
+
+
+def test_without_a_model_the_studio_shows_why(tmp_path):
+    port = free_port()
+    env = dict(os.environ, OMP_NUM_THREADS="1", TMPDIR=str(tmp_path))
+    env.pop("SALAD_MODEL", None)
+    proc = subprocess.Popen([sys.executable, "-m", "app", "--model", str(tmp_path / "nowhere"), "--port", str(port)],
+                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.time() + 120
+        while time.time() < deadline and proc.poll() is None:
+            try:
+                if httpx.get(url + "/config", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                time.sleep(0.5)
+        assert proc.poll() is None, proc.stdout.read()[-3000:]
+        config = httpx.get(url + "/config", timeout=10).text
+        assert "could not load a model" in config and "nowhere" in config and "--model" in config
+        assert len(list(tmp_path.glob("salad-studio-*"))) == 1
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    assert proc.returncode == 0
+    assert not list(tmp_path.glob("salad-studio-*")), "the temp root is removed on exit"
+
+
+# ---------------------------------------------------------------- the pieces
+
+def test_generate_validation_uses_the_pipelines_limits(pipe):
+    req = parse_generate(pipe, "  a person   walks ", False, 1.2, 7.0, 20.0, 3, "dpm")
+    assert req == GenerateRequest("a person walks", 1.2, 7, 20, 3.0, "dpm")
+    assert parse_generate(pipe, "a person walks", True, "ignored", 0, 1, 0, "ddim").seconds is None
+    with pytest.raises(ValueError, match="seconds is required"):
+        parse_generate(pipe, "a person walks", False, None, 0, 1, 0, "ddim")
+    with pytest.raises(ValueError, match="steps must be a number"):
+        parse_generate(pipe, "a person walks", True, None, 0, True, 0, "ddim")
+    with pytest.raises(ValueError, match="CFG scale must be a finite number"):
+        parse_generate(pipe, "a person walks", True, None, 0, 10, float("nan"), "ddim")
+
+
+def test_attention_validation():
+    maps = AttentionMaps(words=["a", "person", "waves", "a", "hand"], data=np.zeros((10, 2, 5, 7, 4), np.float32),
+                         frames=16, layers=[1, 3])
+    r = parse_attention(maps, "Hand", [3, 1, 3], 2, 10)
+    assert (r.word, r.layers, r.steps) == (4, (1, 3), (1, 10))
+    assert parse_attention(maps, "", [1], 1, 1).word is None
+    assert parse_attention(maps, "3", [1], 1, 1).word == 3
+    with pytest.raises(ValueError, match="were not captured"):
+        parse_attention(maps, 0, [2], 1, 1)
+    assert word_choices(maps.words) == [("a (1)", 0), ("person", 1), ("waves", 2), ("a (2)", 3), ("hand", 4)]
+
+
+def test_word_tint_scales_a_words_map_onto_joints():
+    att = np.zeros((7, 5))
+    att[5] = [0.0, 0.1, 0.2, 0.4, 0.2]          # right upper body only
+    tint = word_tint(att)
+    assert tint.shape == (5, 22) and tint.max() == 1.0
+    from salad.motion.skeleton import PART_OF_JOINT
+    assert (tint[:, PART_OF_JOINT != 5] == 0).all() and (tint[3, PART_OF_JOINT == 5] == 1).all()
+    assert not word_tint(np.zeros((7, 3))).any()
+
+
+def test_restyle_slider_keeps_every_frame():
+    from salad.render import skeleton_figure
+
+    joints = synthetic_walk(30)
+    fig = frames_to_restyle_slider(skeleton_figure(joints))
+    steps = fig.layout.sliders[0].steps
+    assert len(steps) == 30 and not fig.frames and not fig.layout.updatemenus
+    z_up = np.asarray(steps[17].args[0]["z"][0], dtype=float)
+    assert np.nanmax(z_up) == pytest.approx(joints[17, :, 1].max(), abs=1e-6)  # plot z is the data's y
+
+
+def test_file_stems_are_safe():
+    req = GenerateRequest("../../etc/passwd; rm -rf / “quoted”", None, 4, 10, 7.5, "ddim")
+    stem = file_stem(req)
+    assert stem.endswith("_seed4") and "/" not in stem and "." not in stem and " " not in stem
+
+
+def test_workspace_sessions_are_private_pruned_and_removed(tmp_path):
+    ws = Workspace(tmp_path, ttl_s=60)
+    try:
+        a, b = ws.session_dir("abc"), ws.session_dir("../../x")
+        assert a.parent == b.parent == ws.sessions and a != b
+        old = time.time() - 120
+        os.utime(a, (old, old))
+        assert ws.prune() == 1 and not a.exists() and b.exists()
+        ws.remove_session("../../x")
+        assert not b.exists()
+        # A root whose process is gone is removed by the next workspace; a live one is kept.
+        dead = tmp_path / "salad-studio-dead"
+        dead.mkdir()
+        (dead / "owner.pid").write_text("999999999")
+        Workspace(tmp_path).close()
+        assert not dead.exists() and ws.root.exists()
+    finally:
+        ws.close()
+    assert not ws.root.exists()
+
+
+def test_sessions_keep_recent_results_and_cache_renders(pipe, tmp_path):
+    ws = Workspace(tmp_path)
+    studio = Studio(pipe, ws)
+    try:
+        session = studio.session(None, "client-1")
+        req = GenerateRequest("a person waves their left hand", 1.0, 0, 3, 7.5, "ddim")
+        stages = []
+        results = [studio.generate(session, req, lambda s, i, n: stages.append(s)) for _ in range(KEEP_RESULTS + 1)]
+        assert {"sampling", "rendering"} <= set(stages)
+        assert not results[0].folder.exists() and all(r.folder.exists() for r in results[1:])
+        current = session.current
+        areq = parse_attention(current.motion.attention, "left", [0, 1, 2], 1, 3)
+        first = studio.word_video(current, areq)
+        mtime = first.stat().st_mtime_ns
+        assert studio.word_video(current, areq) == first and first.stat().st_mtime_ns == mtime, "cached"
+        assert studio.word_heatmap(current, areq) is studio.word_heatmap(current, areq)
+        first.unlink()                       # pruned files are made again
+        assert studio.word_video(current, areq).exists()
+        session.close()
+        assert not session.folder.exists()
+    finally:
+        ws.close()
+
+
+def test_result_cache_is_bounded(tmp_path):
+    r = Result(GenerateRequest("a", None, 0, 1, 0.0, "ddim"), None, tmp_path)
+    for i in range(100):
+        r.cached(("k", i), lambda: i)
+    assert r.cached(("k", 99), lambda: -1) == 99 and r.cached(("k", 0), lambda: -1) == -1
+    assert isinstance(Session("k", tmp_path / "s").current, type(None))
