@@ -91,6 +91,7 @@ class DenoiserTask:
         self.dataset = MotionDataset(d.root, "train", min_frames=d.min_frames, max_frames=d.max_frames,
                                      normalizer=self.normalizer)
         self.canvas = (d.max_frames // 4) * 4
+        self._by_length = np.argsort([min(len(it.features), self.canvas) for it in self.dataset.items], kind="stable")
         self.text_encoder = load_text_encoder(cfg.text_encoder)
         if cfg.model.text_dim != self.text_encoder.dim:
             raise ValueError(f"model.text_dim is {cfg.model.text_dim} but the {self.text_encoder.name} "
@@ -116,9 +117,16 @@ class DenoiserTask:
 
     def batch(self, rng: np.random.Generator) -> dict:
         B = self.cfg.optim.batch_size
-        idx = rng.integers(0, len(self.dataset), size=B)
-        items = [self.dataset.items[i] for i in idx]
         auto = bool(rng.random() < self.cfg.auto_length_prob) if self.cfg.model.length_modes else False
+        if auto:
+            idx = rng.integers(0, len(self.dataset), size=B)
+        else:
+            # Fixed-length batches draw motions of similar length (a random window of the
+            # length-sorted list), so padding, which costs as much as motion, stays small.
+            span = min(len(self._by_length), 4 * B)
+            start = int(rng.integers(0, len(self._by_length) - span + 1))
+            idx = self._by_length[start + rng.integers(0, span, size=B)]
+        items = [self.dataset.items[i] for i in idx]
         crops = [self.normalizer.normalize(self._crop(it.features, rng, self.canvas)) for it in items]
         # One batched encode: every motion is followed by padding with activation 0, the
         # way the VAE saw motion ends in training. Fixed-length rows then keep only their
