@@ -118,6 +118,9 @@ def test_physics_floor_and_skating():
     assert sunk["max_penetration_m"] == pytest.approx(0.1, abs=1e-6)
     lifted = physical_checks(pose + np.array([0.0, 0.2, 0.0]))
     assert lifted["floating_m"] == pytest.approx(0.2, abs=1e-6)
+    assert still["acceleration_mps2"] == 0.0 and physical_checks(slide)["acceleration_mps2"] == pytest.approx(0, abs=1e-6)
+    jitter = pose + np.random.default_rng(0).normal(scale=0.01, size=pose.shape)
+    assert physical_checks(jitter)["acceleration_mps2"] > 5.0  # 1 cm noise at 20 fps: ~ 400 * 0.01 * sqrt(6)
     batch = batch_physical_checks([pose, slide], features=False)
     np.testing.assert_allclose(batch["foot_skating_ratio"], [0.0, 1.0])
     with pytest.raises(ValueError, match="shape"):
