@@ -108,6 +108,33 @@ def cmd_bench(a) -> int:
     return 0
 
 
+def cmd_eval(a) -> int:
+    import torch
+    from .data.dataset import MotionDataset
+    from .eval.evaluator import load_evaluator
+    from .eval.generators import ModelGenerator, VAEReconstruction
+    from .eval.t2m import evaluate_t2m, ground_truth_generator, write_report
+    from .pipeline import load_pipeline
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    ev = load_evaluator(a.evaluator)
+    ds = MotionDataset(a.data, a.split, max_frames=10 ** 9)
+    rows = {"Real motion": evaluate_t2m(ground_truth_generator(ds), ds, ev, repeats=a.repeats, seed=a.seed,
+                                        progress=True)}
+    for model in a.model or [None]:
+        pipe = load_pipeline(model)
+        name = "SALAD (embedded)" if model is None else f"SALAD ({Path(model).name})"
+        vae = VAEReconstruction(pipe)
+        rows[f"{name} VAE reconstruction"] = evaluate_t2m(vae, ds, ev, repeats=1, seed=a.seed, progress=True)
+        rows[f"{name} VAE reconstruction"]["MPJPE_m"] = vae.mpjpe_m
+        gen = ModelGenerator(pipe, steps=a.steps, sampler=a.sampler, cfg=a.cfg, seed=a.seed)
+        rows[name] = evaluate_t2m(gen, ds, ev, repeats=a.repeats, seed=a.seed, mm_prompts=a.mm_prompts,
+                                  mm_repeats=a.mm_repeats, progress=True)
+    path = write_report(rows, a.out)
+    print(path.read_text())
+    return 0
+
+
 def cmd_train(a) -> int:
     from .config import load_toml
     from .training.configs import DenoiserTrainConfig, VAETrainConfig
@@ -122,6 +149,9 @@ def cmd_train(a) -> int:
         cfg = load_toml(DenoiserTrainConfig, a.config)
         _override(cfg, a)
         task, ema = DenoiserTask(cfg), cfg.ema_decay
+    elif a.what == "classifier":
+        from .eval.train_classifier import train_classifier
+        return train_classifier(a)
     else:
         from .eval.train_evaluator import train_evaluator
         return train_evaluator(a)
@@ -197,8 +227,24 @@ def build_parser() -> argparse.ArgumentParser:
     bn.add_argument("--quick", action="store_true", help="one repeat per setting")
     bn.set_defaults(func=cmd_bench)
 
-    t = sub.add_parser("train", help="train the VAE, the denoiser or the evaluator")
-    t.add_argument("what", choices=("vae", "denoiser", "evaluator"))
+    ev = sub.add_parser("eval", help="T2M protocol: FID, R-precision, MM-Dist, Diversity, MultiModality")
+    ev.add_argument("--evaluator", required=True, help="evaluator checkpoint directory")
+    ev.add_argument("--data", required=True, help="HumanML3D-layout dataset")
+    ev.add_argument("--model", action="append", help="model directory (default: the embedded model); repeatable")
+    ev.add_argument("--split", default="test")
+    ev.add_argument("--repeats", type=int, default=20)
+    ev.add_argument("--steps", type=int, default=50)
+    ev.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
+    ev.add_argument("--cfg", type=float, default=7.5)
+    ev.add_argument("--mm-prompts", type=int, default=32)
+    ev.add_argument("--mm-repeats", type=int, default=10)
+    ev.add_argument("--seed", type=int, default=0)
+    ev.add_argument("--threads", type=int, default=0)
+    ev.add_argument("--out", required=True, help="directory for results.json and report.md")
+    ev.set_defaults(func=cmd_eval)
+
+    t = sub.add_parser("train", help="train the VAE, the denoiser, the evaluator or the classifier")
+    t.add_argument("what", choices=("vae", "denoiser", "evaluator", "classifier"))
     t.add_argument("--config", required=True, help="TOML config file")
     t.add_argument("--out-dir", help="override run.out_dir")
     t.add_argument("--data", help="override data.root")

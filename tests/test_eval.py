@@ -298,3 +298,22 @@ def test_classifier_learns_the_turn_direction(labelled_dataset):
         loss.backward()
         opt.step()
     assert task.validate(task.model)["side"] >= 0.75
+
+
+def test_model_and_vae_rows_of_the_protocol(labelled_dataset, minilm, tiny_model, tmp_path):
+    from salad.eval.generators import ModelGenerator, VAEReconstruction
+    from salad.pipeline import load_pipeline
+    cfg_file = _write_config(tmp_path / "ev.toml", labelled_dataset, tmp_path / "run",
+                             TINY_MODEL.format(out=16) + "[model.text]\ngru_hidden = 16\noutput_dim = 16\n")
+    cfg = load_config(Namespace(config=cfg_file, out_dir=None, max_steps=None, data=None))
+    ev = load_evaluator(Trainer(EvaluatorTask(cfg, text_encoder=minilm, progress=False), cfg.optim, cfg.run).fit(),
+                        minilm)
+    ds = MotionDataset(labelled_dataset, "test", max_frames=40)
+    pipe = load_pipeline(tiny_model)
+    gen = ModelGenerator(pipe, steps=3)
+    res = evaluate_t2m(gen, ds, ev, repeats=2, batch_size=4, mm_prompts=2, mm_repeats=6, max_frames=40)
+    assert np.isfinite(res["metrics"]["FID"]["mean"]) and gen.calls >= 4
+    assert res["metrics"]["MultiModality"]["mean"] > 0
+    vae = VAEReconstruction(pipe)
+    rec = evaluate_t2m(vae, ds, ev, repeats=1, batch_size=4, mm_prompts=0, max_frames=40)
+    assert np.isfinite(rec["metrics"]["FID"]["mean"]) and 0 < vae.mpjpe_m < 2.0

@@ -73,3 +73,13 @@ def test_cli_generate_writes_files(tiny_model, tmp_path):
     bad = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "", "--model", str(tiny_model),
                           "-o", str(tmp_path / "x.npy")], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2 and "empty" in bad.stderr
+
+
+def test_generate_batch_with_mixed_lengths(tiny_model):
+    pipe = load_pipeline(tiny_model)
+    out = pipe.generate_batch(["a person walks forward", "someone turns left while walking"], [24, 36], seed=1,
+                              steps=4)
+    assert [m.frames for m in out] == [24, 36]
+    assert all(np.isfinite(m.joints).all() for m in out)
+    with pytest.raises(ValueError, match="multiples of 4"):
+        pipe.generate_batch(["a person walks"], [30])

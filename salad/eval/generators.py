@@ -1,0 +1,65 @@
+"""Generators for the T2M protocol built on a Pipeline: the model itself, and the VAE's
+reconstruction of the real motions (its ceiling)."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..motion.representation import features_to_joints
+
+
+class ModelGenerator:
+    """captions + lengths -> raw 263-d features, batched with per-motion lengths."""
+
+    uses_references = False
+
+    def __init__(self, pipe, steps: int = 50, sampler: str = "ddim", cfg: float = 7.5, seed: int = 0):
+        self.pipe, self.steps, self.sampler, self.cfg, self.seed = pipe, steps, sampler, cfg, seed
+        self.calls = 0
+
+    def __call__(self, captions: list[str], lengths: list[int]) -> list[np.ndarray]:
+        self.calls += 1
+        frames = [min(max(16, (n // 4) * 4), self.pipe.canvas_frames) for n in lengths]
+        motions = self.pipe.generate_batch(captions, frames, seed=self.seed * 100003 + self.calls,
+                                           steps=self.steps, cfg=self.cfg, sampler=self.sampler)
+        out = []
+        for m, n in zip(motions, lengths):
+            f = m.features
+            if len(f) < n:      # lengths the protocol asks for that the model cannot make: hold the last pose
+                f = np.concatenate([f, np.repeat(f[-1:], n - len(f), axis=0)])
+            out.append(f[:n])
+        return out
+
+
+class VAEReconstruction:
+    """The real motions passed through the VAE (mean latent): FID and MPJPE of the autoencoder."""
+
+    uses_references = True
+
+    def __init__(self, pipe):
+        self.pipe = pipe
+        self.errors: list[float] = []
+
+    @torch.no_grad()
+    def __call__(self, captions: list[str], lengths: list[int],
+                 references: Sequence[np.ndarray] | None = None) -> list[np.ndarray]:
+        out = []
+        for ref, n in zip(references, lengths):
+            f = np.asarray(ref[:n], dtype=np.float32)
+            m = (n // 4) * 4
+            x = torch.from_numpy(self.pipe.normalizer.normalize(f[:m]))[None]
+            mu, _ = self.pipe.vae.encode(x)
+            rec, _ = self.pipe.vae.decode(mu)
+            r = self.pipe.normalizer.denormalize(rec[0].numpy())
+            if m < n:
+                r = np.concatenate([r, f[m:]])
+            j, jr = features_to_joints(f[:m]), features_to_joints(r[:m])
+            self.errors.append(float(np.linalg.norm((j - j[:, :1]) - (jr - jr[:, :1]), axis=-1).mean()))
+            out.append(r.astype(np.float32))
+        return out
+
+    @property
+    def mpjpe_m(self) -> float:
+        return float(np.mean(self.errors)) if self.errors else float("nan")
