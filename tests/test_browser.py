@@ -11,6 +11,9 @@ from pathlib import Path
 import httpx
 import pytest
 
+JS_ALL_Z = ("Array.from(document.querySelector(PLOT)._fullData)"
+            ".flatMap(t => Array.from(t.z || []).filter(v => v !== null))")
+
 REPO = Path(__file__).resolve().parents[1]
 ARTIFACTS = REPO / "test-artifacts" / "browser"
 CHROMIUM = Path("/usr/bin/chromium")
@@ -101,12 +104,14 @@ def test_generate_then_explore_a_words_attention(studio_url, page):
     # The 3D view's frame slider moves the skeleton (a click on the slider's rail near its end).
     plot = "#skeleton-plot .js-plotly-plot"
     page.wait_for_selector(plot)
-    before = page.evaluate(f"() => Array.from(document.querySelector({plot!r}).data[2].z).slice(0, 6)")
+    # every trace's decoded z values (plotly ships arrays base64-packed; _fullData holds them unpacked)
+    all_z = f"() => {JS_ALL_Z}"
+    before = page.evaluate(all_z.replace("PLOT", repr(plot)))
     rail = page.locator(f"{plot} .slider-rail-rect").bounding_box()
     page.mouse.click(rail["x"] + 0.9 * rail["width"], rail["y"] + rail["height"] / 2)
     page.wait_for_function(f"() => document.querySelector({plot!r}).layout.sliders[0].active > 0")
-    after = page.evaluate(f"() => Array.from(document.querySelector({plot!r}).data[2].z).slice(0, 6)")
-    assert after != before
+    after = page.evaluate(all_z.replace("PLOT", repr(plot)))
+    assert before and after != before
     page.locator("#generate-tab").screenshot(path=str(ARTIFACTS / "generate.png"))
 
     # Pick a word: its heatmap, the tinted skeleton video and the overview of all words appear.
