@@ -155,7 +155,10 @@ def cmd_train(a) -> int:
     else:
         from .eval.train_evaluator import train_evaluator
         return train_evaluator(a)
-    out = Trainer(task, cfg.optim, cfg.run, ema_decay=ema).fit()
+    trainer = Trainer(task, cfg.optim, cfg.run, ema_decay=ema)
+    if a.init_from:
+        trainer.init_weights(a.init_from)
+    out = trainer.fit()
     print(f"model written to {out}")
     return 0
 
@@ -250,6 +253,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--data", help="override data.root")
     t.add_argument("--max-steps", type=int, help="override optim.max_steps")
     t.add_argument("--threads", type=int, help="override run.threads (CPU threads for this process)")
+    t.add_argument("--init-from", help="start from the weights of an exported model directory (ignored when "
+                                       "the run has a saved state to resume)")
     t.set_defaults(func=cmd_train)
     return p
 

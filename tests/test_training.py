@@ -157,3 +157,15 @@ checkpoint_every = 2
     assert out.returncode == 0, out.stderr[-3000:]
     _, _, _, doc = load_vae(tmp_path / "run" / "model")
     assert doc["meta"]["step"] == 2 and doc["meta"]["samples_seen"] == 2 * 2 * 2
+
+
+def test_init_from_an_exported_model_warm_starts(tiny_dataset, tmp_path):
+    fit(vae_config(tiny_dataset, tmp_path / "first", steps=3))
+    cfg = vae_config(tiny_dataset, tmp_path / "second", steps=1)
+    task = VAETask(cfg)
+    trainer = Trainer(task, cfg.optim, cfg.run)
+    trainer.init_weights(tmp_path / "first" / "model")
+    vae, _, _, _ = load_vae(tmp_path / "first" / "model")
+    for k, v in vae.state_dict().items():
+        assert torch.equal(trainer.model.vae.state_dict()[k], v), k
+    assert trainer.step_count == 0

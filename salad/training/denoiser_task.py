@@ -21,7 +21,8 @@ from ..config import to_dict
 from ..data.dataset import MotionDataset
 from ..diffusion.schedule import NoiseSchedule
 from ..models.denoiser import Denoiser
-from ..models.io import load_vae, save_denoiser, vae_checksum
+from ..checkpoint import load_state_strict
+from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum
 from ..models.text import load_text_encoder
 from .configs import DenoiserTrainConfig
 
@@ -160,6 +161,10 @@ class DenoiserTask:
 
     def config_dict(self) -> dict:
         return to_dict(self.cfg)
+
+    def load_weights(self, model: nn.Module, path: Path) -> None:
+        denoiser, _ = load_denoiser(path)
+        load_state_strict(model.denoiser, denoiser.state_dict(), str(path))
 
     def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
         save_denoiser(path, model.denoiser, self.schedule.config, self.text_encoder.spec(), self.canvas,

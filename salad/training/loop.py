@@ -34,6 +34,7 @@ class Task(Protocol):
     def loss(self, model: torch.nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]: ...
     def export(self, model: torch.nn.Module, path: Path, meta: dict[str, Any]) -> None: ...
     def config_dict(self) -> dict: ...
+    # optional, for --init-from: def load_weights(self, model: torch.nn.Module, path: Path) -> None
 
 
 def lr_factor(step: int, cfg: OptimConfig) -> float:
@@ -166,6 +167,15 @@ class Trainer:
             state = meta["python_rng"]
             random.setstate((state[0], tuple(state[1]), state[2]))
         return True
+
+    def init_weights(self, path: str | Path) -> None:
+        """Warm start from an exported model (e.g. the shipped snapshot) when there is no
+        training state to resume: weights only, fresh optimiser, step 0 of a new run."""
+        if (self.out / STATE_DIR).exists():
+            return
+        self.task.load_weights(self.model, Path(path))
+        if self.ema is not None:
+            self.ema.load_state_dict(self.model.state_dict())
 
     # ------------------------------------------------------------ the loop
     def fit(self) -> Path:

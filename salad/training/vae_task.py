@@ -11,7 +11,8 @@ import torch.nn as nn
 from ..config import to_dict
 from ..data.dataset import MotionDataset, WindowSampler
 from ..models.vae import MotionVAE
-from ..models.io import save_vae
+from ..checkpoint import load_state_strict
+from ..models.io import load_vae, save_vae
 from .configs import VAETrainConfig
 
 
@@ -62,6 +63,10 @@ class VAETask:
         b = WindowSampler(self.dataset, self.cfg.data.window, 0.0).batch(n, np.random.default_rng(1234))
         mu, _ = vae.encode(b["features"], b["activation"])
         return float(1.0 / mu.float().std().clamp_min(1e-6))
+
+    def load_weights(self, model: nn.Module, path: Path) -> None:
+        vae, _, _, _ = load_vae(path)
+        load_state_strict(model.vae, vae.state_dict(), str(path))
 
     def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
         vae = model.vae
