@@ -1,0 +1,30 @@
+"""The shipped model loads by default and makes plausible motions."""
+import numpy as np
+import pytest
+
+from salad.pipeline import EMBEDDED_MODEL, load_pipeline
+
+
+@pytest.fixture(scope="module")
+def pipe():
+    if not (EMBEDDED_MODEL / "denoiser").is_dir():
+        pytest.fail(f"the embedded model is missing from {EMBEDDED_MODEL}")
+    return load_pipeline()
+
+
+def test_embedded_model_makes_a_plausible_motion_of_the_requested_length(pipe):
+    m = pipe.generate("a person walks forward", seconds=3.0, seed=0, steps=20)
+    assert m.joints.shape == (60, 22, 3) and m.features.shape == (60, 263)
+    assert np.isfinite(m.joints).all()
+    feet = m.joints[:, [7, 8, 10, 11], 1]
+    assert -0.10 < feet.min() < 0.10, "feet reach the floor"
+    height = m.joints[:, 15, 1].mean() - feet.min()
+    assert 1.1 < height < 1.8, f"a person-sized skeleton (head {height:.2f} m above the feet)"
+    bones = np.linalg.norm(m.joints[:, 18] - m.joints[:, 16], axis=-1)
+    assert bones.std() < 0.05, "bone lengths stay put"
+
+
+def test_embedded_model_chooses_a_length_itself(pipe):
+    m = pipe.generate("a person raises their left hand", seed=1, steps=20)
+    assert 16 <= m.frames <= pipe.canvas_frames and m.frames % 4 == 0
+    assert np.isfinite(m.joints).all()
