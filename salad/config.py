@@ -27,7 +27,12 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
     for name, value in data.items():
         hint = hints[name]
         if dataclasses.is_dataclass(hint):
-            kwargs[name] = from_dict(hint, value, f"{where}.{name}")
+            # A nested table overrides the field's own default (its default_factory), so keys it
+            # leaves out keep the values this config chose, not the nested class's defaults.
+            f = fields[name]
+            base = f.default_factory() if f.default_factory is not dataclasses.MISSING else hint()
+            merged = {**dataclasses.asdict(base), **value} if isinstance(value, dict) else value
+            kwargs[name] = from_dict(hint, merged, f"{where}.{name}")
             continue
         origin = typing.get_origin(hint)
         base = hint if origin is None else origin
