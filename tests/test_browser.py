@@ -104,14 +104,15 @@ def test_generate_then_explore_a_words_attention(studio_url, page):
     # The 3D view's frame slider moves the skeleton (a click on the slider's rail near its end).
     plot = "#skeleton-plot .js-plotly-plot"
     page.wait_for_selector(plot)
-    # every trace's decoded z values (plotly ships arrays base64-packed; _fullData holds them unpacked)
-    all_z = f"() => {JS_ALL_Z}"
-    before = page.evaluate(all_z.replace("PLOT", repr(plot)))
+    # every trace's decoded z values (plotly ships arrays base64-packed; _fullData holds them unpacked);
+    # the restyle lands asynchronously after the slider moves, so wait for the values to change
+    all_z = "JSON.stringify(" + JS_ALL_Z.replace("PLOT", repr(plot)) + ")"
+    page.evaluate(f"() => {{ window.__zBefore = {all_z}; }}")
+    assert page.evaluate("() => window.__zBefore.length > 2")
     rail = page.locator(f"{plot} .slider-rail-rect").bounding_box()
     page.mouse.click(rail["x"] + 0.9 * rail["width"], rail["y"] + rail["height"] / 2)
     page.wait_for_function(f"() => document.querySelector({plot!r}).layout.sliders[0].active > 0")
-    after = page.evaluate(all_z.replace("PLOT", repr(plot)))
-    assert before and after != before
+    page.wait_for_function(f"() => {all_z} !== window.__zBefore", timeout=15000)
     page.locator("#generate-tab").screenshot(path=str(ARTIFACTS / "generate.png"))
 
     # Pick a word: its heatmap, the tinted skeleton video and the overview of all words appear.
