@@ -7,6 +7,8 @@ import os
 import sys
 from pathlib import Path
 
+from .eval import EMBEDDED_EVALUATOR
+
 
 def _env_defaults() -> None:
     # Never reach for a model hub or send telemetry: everything here runs offline.
@@ -231,7 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
     bn.set_defaults(func=cmd_bench)
 
     ev = sub.add_parser("eval", help="T2M protocol: FID, R-precision, MM-Dist, Diversity, MultiModality")
-    ev.add_argument("--evaluator", required=True, help="evaluator checkpoint directory")
+    ev.add_argument("--evaluator", default=str(EMBEDDED_EVALUATOR),
+                    help="evaluator checkpoint directory (default: the one shipped in assets/eval)")
     ev.add_argument("--data", required=True, help="HumanML3D-layout dataset")
     ev.add_argument("--model", action="append", help="model directory (default: the embedded model); repeatable")
     ev.add_argument("--split", default="test")
