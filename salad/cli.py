@@ -123,7 +123,7 @@ def cmd_eval(a) -> int:
     ds = MotionDataset(a.data, a.split, max_frames=10 ** 9)
     rows = {"Real motion": evaluate_t2m(ground_truth_generator(ds), ds, ev, repeats=a.repeats, seed=a.seed,
                                         progress=True)}
-    for model in a.model or [None]:
+    for model in [] if a.real_only else a.model or [None]:
         pipe = load_pipeline(model)
         name = "SALAD (embedded)" if model is None else f"SALAD ({Path(model).name})"
         vae = VAEReconstruction(pipe)
@@ -138,18 +138,18 @@ def cmd_eval(a) -> int:
 
 
 def cmd_train(a) -> int:
-    from .config import load_toml
+    from .config import apply_overrides, load_toml
     from .training.configs import DenoiserTrainConfig, VAETrainConfig
     from .training.loop import Trainer
     if a.what == "vae":
         from .training.vae_task import VAETask
         cfg = load_toml(VAETrainConfig, a.config)
-        _override(cfg, a)
+        apply_overrides(cfg, a)
         task, ema = VAETask(cfg), None
     elif a.what == "denoiser":
         from .training.denoiser_task import DenoiserTask
         cfg = load_toml(DenoiserTrainConfig, a.config)
-        _override(cfg, a)
+        apply_overrides(cfg, a)
         task, ema = DenoiserTask(cfg), cfg.ema_decay
     elif a.what == "classifier":
         from .eval.train_classifier import train_classifier
@@ -163,17 +163,6 @@ def cmd_train(a) -> int:
     out = trainer.fit()
     print(f"model written to {out}")
     return 0
-
-
-def _override(cfg, a) -> None:
-    if a.out_dir:
-        cfg.run.out_dir = a.out_dir
-    if a.max_steps:
-        cfg.optim.max_steps = a.max_steps
-    if a.data:
-        cfg.data.root = a.data
-    if a.threads:
-        cfg.run.threads = a.threads
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -237,6 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="evaluator checkpoint directory (default: the one shipped in assets/eval)")
     ev.add_argument("--data", required=True, help="HumanML3D-layout dataset")
     ev.add_argument("--model", action="append", help="model directory (default: the embedded model); repeatable")
+    ev.add_argument("--real-only", action="store_true", help="score only the real motions (the reference row)")
     ev.add_argument("--split", default="test")
     ev.add_argument("--repeats", type=int, default=20)
     ev.add_argument("--steps", type=int, default=50)

@@ -59,3 +59,12 @@ def load_toml(cls: type[T], path: str | Path) -> T:
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: invalid TOML ({e})") from None
     return from_dict(cls, data, str(path))
+
+
+def apply_overrides(cfg, args) -> None:
+    """The command line's --out-dir, --max-steps, --data and --threads, where given, win over the file."""
+    for flag, section, name in (("out_dir", "run", "out_dir"), ("max_steps", "optim", "max_steps"),
+                                ("data", "data", "root"), ("threads", "run", "threads")):
+        value = getattr(args, flag, None)
+        if value:
+            setattr(getattr(cfg, section), name, value)

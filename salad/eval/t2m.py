@@ -12,14 +12,11 @@ length, in batches of 32 (the last incomplete batch is dropped). Per repeat:
 
 Results are mean and 95% confidence half-width (1.96 std / sqrt(repeats)) over the repeats.
 
-    python -m salad.eval.t2m --evaluator runs/evaluator/model --data data/bandai-hml --repeats 5 --out DIR
-scores the real test motions themselves (the "Real motion" row).
+`salad eval --real-only` scores the real test motions themselves (the "Real motion" row).
 """
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -234,35 +231,3 @@ def write_report(results: Mapping[str, Any], out_dir: str | Path, title: str = "
     path = out / "report.md"
     atomic_write_text(path, "\n".join(notes) + "\n")
     return path
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m salad.eval.t2m",
-                                description="Score the real test motions with the T2M protocol (the 'Real motion' row).")
-    p.add_argument("--evaluator", required=True, help="evaluator checkpoint directory")
-    p.add_argument("--data", required=True, help="HumanML3D-layout dataset directory")
-    p.add_argument("--split", default="test")
-    p.add_argument("--repeats", type=int, default=20)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
-    p.add_argument("--out", required=True, help="output directory for results.json and report.md")
-    a = p.parse_args(argv)
-    import torch
-
-    from .evaluator import load_evaluator
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    try:
-        ev = load_evaluator(a.evaluator)
-        ds = MotionDataset(a.data, a.split, max_frames=10 ** 9)
-        res = evaluate_t2m(ground_truth_generator(ds), ds, ev, repeats=a.repeats, seed=a.seed, progress=True)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    path = write_report({"Real motion": res}, a.out)
-    print(path.read_text())
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,6 +1,6 @@
 """Training the content/style/side motion classifier.
 
-    python -m salad.eval.train_classifier --config configs/classifier.toml
+    salad train classifier --config configs/classifier.toml
 
 Training draws motions with probability proportional to count(content, style)^-balance, so the rare
 labels of the smaller recording set are seen often enough. The exported model is the one with the best
@@ -8,9 +8,7 @@ mean validation accuracy over the heads.
 """
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +19,7 @@ import torch
 import torch.nn as nn
 
 from ..checkpoint import atomic_write_text
-from ..config import load_toml, to_dict
+from ..config import apply_overrides, load_toml, to_dict
 from ..data.dataset import MotionDataset, load_normalizer
 from ..training.configs import OptimConfig, RunConfig
 from .classifiers import HEADS, KIND, Classifier, ClassifierConfig, MotionClassifier, load_classifier, save_classifier
@@ -153,14 +151,7 @@ def train_classifier(args) -> int:
     from ..training.loop import Trainer
 
     cfg = load_toml(ClassifierTrainConfig, args.config)
-    if getattr(args, "out_dir", None):
-        cfg.run.out_dir = args.out_dir
-    if getattr(args, "max_steps", None):
-        cfg.optim.max_steps = args.max_steps
-    if getattr(args, "data", None):
-        cfg.data.root = args.data
-    if getattr(args, "threads", None):
-        cfg.run.threads = args.threads
+    apply_overrides(cfg, args)
     if cfg.run.threads:
         torch.set_num_threads(cfg.run.threads)
     t0 = time.time()
@@ -178,22 +169,3 @@ def train_classifier(args) -> int:
     print(json.dumps(summary, indent=2))
     print(f"model written to {out}")
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m salad.eval.train_classifier",
-                                description="Train the content/style/side motion classifier.")
-    p.add_argument("--config", required=True, help="TOML config file")
-    p.add_argument("--out-dir", help="override run.out_dir")
-    p.add_argument("--data", help="override data.root")
-    p.add_argument("--max-steps", type=int, help="override optim.max_steps")
-    p.add_argument("--threads", type=int, help="override run.threads")
-    try:
-        return train_classifier(p.parse_args(argv))
-    except (ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

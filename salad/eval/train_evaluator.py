@@ -10,15 +10,16 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 import numpy as np
 import torch
 import torch.nn as nn
 
 from ..checkpoint import atomic_write_text
-from ..config import load_toml, to_dict
+from ..config import apply_overrides, load_toml, to_dict
 from ..data.dataset import MotionDataset, load_normalizer
+from ..models.text_bank import TextBank
 from ..training.configs import OptimConfig, RunConfig
 from .evaluator import KIND, Evaluator, EvaluatorConfig, TextMotionMatcher, load_evaluator, save_evaluator
 from .labels import read_labels
@@ -48,38 +49,6 @@ class EvaluatorTrainConfig:
                                                              checkpoint_every=100, log_every=25))
     val_pool: int = 32
     val_repeats: int = 10
-
-
-class TextBank:
-    """Frozen token features of a fixed set of captions, stored flat and gathered into padded batches."""
-
-    def __init__(self, captions: Sequence[str], encoder, chunk: int = 256, progress: bool = False):
-        self.captions = list(dict.fromkeys(captions))
-        self.index = {c: i for i, c in enumerate(self.captions)}
-        rows, lengths = [], []
-        t0 = time.time()
-        for s in range(0, len(self.captions), chunk):
-            f = encoder.encode(self.captions[s:s + chunk])
-            n = f.mask.sum(1)
-            for b in range(len(n)):
-                rows.append(f.tokens[b, :int(n[b])])
-                lengths.append(int(n[b]))
-            if progress and (s // chunk) % 10 == 9:
-                print(f"text features: {min(s + chunk, len(self.captions))}/{len(self.captions)} "
-                      f"({time.time() - t0:.0f} s)", flush=True)
-        self.lengths = torch.tensor(lengths)
-        self.offsets = torch.cumsum(torch.cat((torch.zeros(1, dtype=torch.long), self.lengths[:-1])), 0)
-        self.flat = torch.cat(rows)
-
-    def gather(self, indices: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        idx = torch.as_tensor(indices, dtype=torch.long)
-        n = self.lengths[idx]
-        L = int(n.max())
-        pos = torch.arange(L)
-        mask = pos[None, :] < n[:, None]
-        rows = (self.offsets[idx][:, None] + pos[None, :]).clamp(max=len(self.flat) - 1)
-        tokens = self.flat[rows] * mask[..., None]
-        return tokens, mask
 
 
 def retrieval_precision(evaluator: Evaluator, dataset: MotionDataset, embed_captions: Callable[[list[str]], np.ndarray],
@@ -123,7 +92,7 @@ class EvaluatorTask:
             text_encoder = load_text_encoder(cfg.model.text_encoder)
         self.text_encoder = text_encoder
         captions = [c for ds in (self.train, self.val) for it in ds.items for c in it.captions]
-        self.bank = TextBank(captions, text_encoder, progress=progress)
+        self.bank = TextBank(text_encoder, captions, progress=progress)
         self.caption_ids = [[self.bank.index[c] for c in it.captions] for it in self.train.items]
         torch.manual_seed(cfg.run.seed)
         self.model = TextMotionMatcher(cfg.model)
@@ -195,14 +164,7 @@ class EvaluatorTask:
 
 def load_config(args) -> EvaluatorTrainConfig:
     cfg = load_toml(EvaluatorTrainConfig, args.config)
-    if getattr(args, "out_dir", None):
-        cfg.run.out_dir = args.out_dir
-    if getattr(args, "max_steps", None):
-        cfg.optim.max_steps = args.max_steps
-    if getattr(args, "data", None):
-        cfg.data.root = args.data
-    if getattr(args, "threads", None):
-        cfg.run.threads = args.threads
+    apply_overrides(cfg, args)
     return cfg
 
 

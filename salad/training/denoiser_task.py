@@ -15,7 +15,6 @@ import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from tqdm import tqdm
 
 from ..config import to_dict
 from ..data.dataset import MotionDataset
@@ -24,36 +23,8 @@ from ..models.denoiser import Denoiser
 from ..checkpoint import load_state_strict
 from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum
 from ..models.text import load_text_encoder
+from ..models.text_bank import TextBank
 from .configs import DenoiserTrainConfig
-
-
-class TextBank:
-    """Token features of every training caption, computed once (the encoder is frozen)."""
-
-    def __init__(self, encoder, captions: list[str], batch: int = 256, show: bool = True):
-        self.encoder = encoder
-        uniq = sorted(set(captions) | {""})
-        self.index = {c: i for i, c in enumerate(uniq)}
-        self.tokens: list[torch.Tensor] = []
-        self.pooled = torch.zeros(len(uniq), encoder.dim)
-        for s in tqdm(range(0, len(uniq), batch), desc="text features", disable=not show):
-            chunk = uniq[s:s + batch]
-            out = encoder.encode(chunk)
-            for k, cap in enumerate(chunk):
-                n = int(out.mask[k].sum())
-                self.tokens.append(out.tokens[k, :n].to(torch.bfloat16))
-            self.pooled[s:s + len(chunk)] = out.pooled.float()
-
-    def batch(self, captions: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        ids = [self.index[c] for c in captions]
-        L = max(self.tokens[i].shape[0] for i in ids)
-        tok = torch.zeros(len(ids), L, self.encoder.dim)
-        mask = torch.zeros(len(ids), L, dtype=torch.bool)
-        for b, i in enumerate(ids):
-            n = self.tokens[i].shape[0]
-            tok[b, :n] = self.tokens[i].float()
-            mask[b, :n] = True
-        return tok, mask, self.pooled[ids]
 
 
 class DenoiserTraining(nn.Module):
@@ -98,7 +69,7 @@ class DenoiserTask:
             raise ValueError(f"model.text_dim is {cfg.model.text_dim} but the {self.text_encoder.name} "
                              f"text encoder gives {self.text_encoder.dim}-d features")
         captions = [c for it in self.dataset.items for c in it.captions]
-        self.text = TextBank(self.text_encoder, captions, show=show_progress)
+        self.text = TextBank(self.text_encoder, captions, progress=show_progress, dtype=torch.bfloat16)
         self.schedule = NoiseSchedule(cfg.diffusion)
         torch.manual_seed(cfg.run.seed)
         self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule)
