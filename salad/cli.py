@@ -2,12 +2,15 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import sys
 from pathlib import Path
 
 from .eval import EMBEDDED_EVALUATOR
+
+PLUGIN_COMMANDS = ("salad.eval.edit_bench",)
 
 
 def _env_defaults() -> None:
@@ -249,6 +252,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--init-from", help="start from the weights of an exported model directory (ignored when "
                                        "the run has a saved state to resume)")
     t.set_defaults(func=cmd_train)
+
+    # benchmarks and tools that register their own subcommand next to their implementation
+    for name in PLUGIN_COMMANDS:
+        importlib.import_module(name).add_parser(sub)
     return p
 
 

@@ -1,0 +1,156 @@
+"""The fixed prompt suite of the editing benchmark, worded in the caption templates' vocabulary
+(salad.data.captions) so that the model has seen every phrase in training.
+
+Each case names what the edited motion should be (classifier labels, optionally a physical sign), which
+label of the source it should keep, and which motion its preservation is measured against:
+
+* mirror: one-hand wave/raise prompts mirrored with mode="mirror" on all parts or on the arms only.
+  Success: the classifier's side flips (left <-> right) and the other wrist now leads physically (travels
+  further in a wave, rises higher in a raise). The baseline regenerates the prompt with left and right
+  swapped. Preservation is measured against the mirrored source for "all"; for "upper" the legs should
+  not move, so against the source itself with the lower body's pose.
+* swap: content swaps with a physical signature (walk -> run must speed up, a left turn must turn right)
+  or an upper-body one (wave -> raise keeps the legs), and style swaps (normal -> exhausted, ...).
+* refine: a style word appended to a plain prompt.
+* reweight: the action word of a one-hand prompt scaled by s; the amplitude of the acting hand (wrist
+  travel for waves, wrist height for raises) should grow with s.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..data.captions import swap_left_right
+
+MODES = ("mirror", "swap", "refine", "reweight")
+DEFAULT_SCALES = (-2.0, -1.0, 0.0, 1.0, 2.0, 3.0)
+PHYSICS = ("faster", "turn_left", "turn_right", "wrist_flip")
+AMPLITUDES = {"wrist_path": "{side}_wrist_path_m", "wrist_height": "{side}_wrist_height_m"}
+
+
+@dataclass(frozen=True)
+class EditCase:
+    name: str
+    mode: str                             # one of MODES
+    group: str                            # summary row the case is counted in
+    source: str
+    target: str | None = None             # swap / refine target prompt
+    seconds: float = 4.0
+    expect: dict = field(default_factory=dict)          # head -> label of the edit; side "flip": the source's, mirrored
+    source_expect: dict = field(default_factory=dict)   # what the source prompt asks for (a sanity check)
+    physics: str | None = None            # one of PHYSICS
+    keep: str | None = None               # classifier head whose label the edit should keep
+    reference: str = "source"             # "source" or "mirrored": what preservation compares with
+    pose_joints: str | None = None        # joint set whose pose should stay ("all", "lower", "upper")
+    mirror: str | None = None             # mirror mode's part
+    word: str | None = None               # reweight: the word to scale
+    acting_side: str | None = None        # reweight: the hand whose amplitude is measured
+    amplitude: str = "wrist_path"         # one of AMPLITUDES: the acting hand's measure (reweight, mirror)
+
+    @property
+    def baseline(self) -> str:
+        """The prompt a plain regeneration gets: the target, the mirrored wording, or the prompt itself."""
+        if self.mode in ("swap", "refine"):
+            return self.target
+        if self.mode == "mirror":
+            return swap_left_right(self.source)
+        return self.source
+
+    def required_labels(self) -> dict[str, set[str]]:
+        """Classifier classes this case needs, per head."""
+        need: dict[str, set[str]] = {}
+        for labels in (self.expect, self.source_expect):
+            for head, label in labels.items():
+                need.setdefault(head, set())
+                if label != "flip":
+                    need[head].add(label)
+        if self.keep:
+            need.setdefault(self.keep, set())
+        if self.expect.get("side") == "flip":
+            need["side"] |= {"left", "right"}
+        return need
+
+
+def _mirror_cases() -> list[EditCase]:
+    out = []
+    for part in ("all", "upper"):
+        for verb, content in (("waves", "wave"), ("raises", "raise-up")):
+            for side in ("left", "right"):
+                out.append(EditCase(
+                    name=f"{content}-{side} mirror-{part}", mode="mirror", group=f"mirror ({part})",
+                    source=f"a person {verb} their {side} hand", mirror=part,
+                    expect={"side": "flip"}, source_expect={"content": f"{content}-{side}-hand", "side": side},
+                    physics="wrist_flip", keep="style",
+                    amplitude="wrist_path" if verb == "waves" else "wrist_height",
+                    reference="mirrored" if part == "all" else "source",
+                    pose_joints="all" if part == "all" else "lower"))
+    return out
+
+
+def _swap_cases() -> list[EditCase]:
+    c = "swap: content"
+    s = "swap: style"
+    return [
+        EditCase("walk->run", "swap", c, "a person walks forward", "a person runs forward",
+                 expect={"content": "run"}, source_expect={"content": "walk"}, physics="faster", keep="style"),
+        EditCase("walk->run (active)", "swap", c, "a person walks forward energetically",
+                 "a person runs forward energetically", expect={"content": "run"},
+                 source_expect={"content": "walk", "style": "active"}, physics="faster", keep="style"),
+        EditCase("turn-left->turn-right", "swap", c, "a person walks and turns left", "a person walks and turns right",
+                 expect={"content": "walk-turn-right"}, source_expect={"content": "walk-turn-left"},
+                 physics="turn_right", keep="style"),
+        EditCase("wave->raise (right)", "swap", c, "a person waves their right hand",
+                 "a person raises their right hand",
+                 expect={"content": "raise-up-right-hand"}, source_expect={"content": "wave-right-hand"},
+                 keep="style", pose_joints="lower"),
+        EditCase("walk normal->exhausted", "swap", s, "a person walks forward normally",
+                 "a person walks forward wearily",
+                 expect={"style": "exhausted"}, source_expect={"content": "walk", "style": "normal"}, keep="content"),
+        EditCase("walk normal->active", "swap", s, "a person walks forward normally",
+                 "a person walks forward energetically", expect={"style": "active"},
+                 source_expect={"content": "walk", "style": "normal"}, keep="content"),
+        EditCase("run normal->exhausted", "swap", s, "a person runs forward normally", "a person runs forward wearily",
+                 expect={"style": "exhausted"}, source_expect={"content": "run", "style": "normal"}, keep="content"),
+        EditCase("wave normal->exhausted", "swap", s, "a person waves their right hand normally",
+                 "a person waves their right hand wearily", expect={"style": "exhausted"},
+                 source_expect={"content": "wave-right-hand", "style": "normal"}, keep="content",
+                 pose_joints="lower"),
+    ]
+
+
+def _refine_cases() -> list[EditCase]:
+    g = "refine: style"
+    return [
+        EditCase("walk +wearily", "refine", g, "a person walks forward", "a person walks forward wearily",
+                 expect={"style": "exhausted"}, source_expect={"content": "walk"}, keep="content"),
+        EditCase("walk +in an exhausted way", "refine", g, "a person walks forward",
+                 "a person walks forward in an exhausted way", expect={"style": "exhausted"},
+                 source_expect={"content": "walk"}, keep="content"),
+        EditCase("walk +energetically", "refine", g, "a person walks forward", "a person walks forward energetically",
+                 expect={"style": "active"}, source_expect={"content": "walk"}, keep="content"),
+        EditCase("run +wearily", "refine", g, "a person runs forward", "a person runs forward wearily",
+                 expect={"style": "exhausted"}, source_expect={"content": "run"}, keep="content"),
+        EditCase("wave +energetically", "refine", g, "a person waves their right hand",
+                 "a person waves their right hand energetically", expect={"style": "active"},
+                 source_expect={"content": "wave-right-hand"}, keep="content", pose_joints="lower"),
+    ]
+
+
+def _reweight_cases() -> list[EditCase]:
+    return [
+        EditCase("waves (right)", "reweight", "reweight", "a person waves their right hand", word="waves",
+                 acting_side="right", source_expect={"content": "wave-right-hand"}, pose_joints="lower"),
+        EditCase("waves (left)", "reweight", "reweight", "a person waves their left hand", word="waves",
+                 acting_side="left", source_expect={"content": "wave-left-hand"}, pose_joints="lower"),
+        EditCase("raises (right)", "reweight", "reweight", "a person raises their right hand", word="raises",
+                 acting_side="right", amplitude="wrist_height", source_expect={"content": "raise-up-right-hand"},
+                 pose_joints="lower"),
+    ]
+
+
+def default_suite(modes=MODES) -> list[EditCase]:
+    """The benchmark's cases for the given modes, in a fixed order."""
+    unknown = [m for m in modes if m not in MODES]
+    if unknown:
+        raise ValueError(f"unknown edit mode(s) {', '.join(map(repr, unknown))}; choose from {', '.join(MODES)}")
+    build = {"mirror": _mirror_cases, "swap": _swap_cases, "refine": _refine_cases, "reweight": _reweight_cases}
+    return [case for m in MODES if m in modes for case in build[m]()]
