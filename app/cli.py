@@ -23,10 +23,13 @@ def parse_args(argv: list[str] | None = None) -> Settings:
     p.add_argument("--tmp-dir", type=Path, default=None, help="where the studio's temp folder goes (default: $TMPDIR)")
     p.add_argument("--session-ttl", type=float, default=7200.0,
                    help="seconds after which an idle session and its files are removed (default 7200)")
+    p.add_argument("--control-examples", type=Path, default=None, metavar="DIR",
+                   help="a folder of control .npy files (MoLA's format) to offer in the Control tab")
     a = p.parse_args(argv)
     try:
         return Settings(model=a.model, host=a.host, port=a.port, concurrency=a.concurrency, threads=a.threads,
-                        bf16=not a.fp32, tmp_dir=a.tmp_dir, session_ttl_s=a.session_ttl)
+                        bf16=not a.fp32, tmp_dir=a.tmp_dir, session_ttl_s=a.session_ttl,
+                        control_examples=a.control_examples)
     except ValueError as exc:
         p.error(str(exc))
 

@@ -12,7 +12,7 @@ from .settings import Settings
 from .workspace import Workspace
 
 log = logging.getLogger("salad.studio")
-MAX_UPLOAD = "1mb"     # the studio takes no uploads; this bounds what the upload route accepts
+MAX_UPLOAD = "1mb"     # control targets are the only uploads; app.settings.MAX_UPLOAD_BYTES is checked again
 
 
 @dataclass
@@ -64,7 +64,7 @@ def create_app(settings: Settings, pipe=None) -> StudioApp:
             pipe, error = _load(settings)
         if pipe is None:
             return StudioApp(build_error_page(error), workspace, None, error)
-        studio = Studio(pipe, workspace)
+        studio = Studio(pipe, workspace, settings.control_examples)
         demo = build_studio(studio, settings)
         demo.queue(default_concurrency_limit=settings.concurrency, max_size=settings.queue_size)
         return StudioApp(demo, workspace, studio)

@@ -1,4 +1,5 @@
-"""What one session holds between requests: its latest motions and what was rendered from them."""
+"""What one session holds between requests: its latest results of each kind (generation,
+edit, guided control) and what was rendered from them."""
 from __future__ import annotations
 
 import shutil
@@ -9,26 +10,34 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from .validation import GenerateRequest
-
-KEEP_RESULTS = 2        # the previous motion's files stay while its downloads may still be fetched
-CACHE_ENTRIES = 48      # renders kept per motion (word x aggregation combinations)
+KEEP_RESULTS = 2        # the previous result's files stay while its downloads may still be fetched
+CACHE_ENTRIES = 48      # renders kept per result (word x aggregation combinations)
+KINDS = ("generate", "edit", "control")
 
 
 @dataclass
 class Result:
-    """One generated motion, where its files live, and a cache of views rendered from it."""
+    """One finished request: its motion(s), where its files live, and a cache of views rendered from it.
 
-    request: GenerateRequest
-    motion: Any                         # salad Motion, with .attention
+    kind "generate": `motion` with its attention; "edit": `motion` is the edited motion and
+    `source` the source one; "control": `motion` and the `signal` it was guided by."""
+
+    request: Any                        # GenerateRequest | EditRequest | ControlRequest
+    motion: Any                         # salad Motion
     folder: Path
     files: dict[str, Path] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    kind: str = "generate"
+    source: Any = None                  # edit: the source Motion
+    signal: Any = None                  # control: the ControlSignal
     id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
 
     def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"result kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
         self._cache: OrderedDict[tuple, Any] = OrderedDict()
         self._lock = threading.Lock()
+        self.reused = 0                 # how often an identical request was answered with this result
 
     def cached(self, key: tuple, make: Callable[[], Any]) -> Any:
         """The value stored under `key`, made on first use. A cached file that has since
@@ -47,6 +56,10 @@ class Result:
                 self._cache.popitem(last=False)
         return value
 
+    def intact(self) -> bool:
+        """Whether every file of the result is still on disk."""
+        return self.folder.is_dir() and all(p.exists() for p in self.files.values())
+
 
 def _missing_file(value) -> bool:
     items = value if isinstance(value, (list, tuple)) else [value]
@@ -54,17 +67,23 @@ def _missing_file(value) -> bool:
 
 
 class Session:
-    """A browser tab or API client: its folder and its most recent results."""
+    """A browser tab or API client: its folder and its most recent results of each kind."""
 
     def __init__(self, key: str, folder: Path):
         self.key, self.folder = key, folder
-        self._results: list[Result] = []
+        self._results: dict[str, list[Result]] = {k: [] for k in KINDS}
         self._lock = threading.Lock()
 
     @property
     def current(self) -> Result | None:
+        """The latest generated motion (the one the Attention tab and the Control tab's
+        in-betweening and upper-body edits work on)."""
+        return self.latest("generate")
+
+    def latest(self, kind: str) -> Result | None:
         with self._lock:
-            return self._results[-1] if self._results else None
+            results = self._results[kind]
+            return results[-1] if results else None
 
     def new_folder(self) -> Path:
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -73,14 +92,29 @@ class Session:
         return d
 
     def add(self, result: Result) -> None:
-        """Make `result` current; folders of results older than the last KEEP_RESULTS go."""
+        """Make `result` the latest of its kind; folders of older results (beyond KEEP_RESULTS) go."""
         with self._lock:
-            self._results.append(result)
-            dropped, self._results = self._results[:-KEEP_RESULTS], self._results[-KEEP_RESULTS:]
+            results = self._results[result.kind]
+            results.append(result)
+            dropped, self._results[result.kind] = results[:-KEEP_RESULTS], results[-KEEP_RESULTS:]
         for old in dropped:
             shutil.rmtree(old.folder, ignore_errors=True)
 
+    def reuse(self, kind: str, request) -> Result | None:
+        """A kept result of an identical request whose files are all still there, made the
+        latest of its kind; sampling is deterministic, so running it again would give the same."""
+        with self._lock:
+            results = self._results[kind]
+            for i in range(len(results) - 1, -1, -1):
+                r = results[i]
+                if r.request == request and r.intact():
+                    results.append(results.pop(i))
+                    r.reused += 1
+                    return r
+        return None
+
     def close(self) -> None:
         with self._lock:
-            self._results.clear()
+            for results in self._results.values():
+                results.clear()
         shutil.rmtree(self.folder, ignore_errors=True)

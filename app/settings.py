@@ -18,6 +18,20 @@ MAX_SEED = 2**31 - 1
 DEFAULT_SECONDS = 4.0
 SECONDS_STEP = 0.2          # frames come in multiples of 4 at 20 fps
 
+# Editing (SALAD's attention modulation).
+DEFAULT_TAU = {"swap": 0.8, "refine": 0.0}   # share of the steps during which the source's maps lead
+MAX_REWEIGHT = 3.0          # |s| beyond 3 turns the motion into noise
+DEFAULT_REWEIGHT = 2.0
+DEFAULT_SELF_INJECT = 0.2
+MIRROR_PARTS = ("lower", "upper", "all")
+
+# Guided control (MoLA's training-free guidance).
+MAX_STRENGTH = 20.0
+DEFAULT_STRENGTH = 3.0      # on the embedded model: path error about half that of 1.0
+DEFAULT_PATH_SPEED = 1.0    # m/s along a preset path: an ordinary walk
+MAX_PATH_SPEED = 3.0
+MAX_UPLOAD_BYTES = 1_000_000   # a (196, 22, 3) float64 target array is about 100 kB
+
 
 @dataclass(frozen=True)
 class Settings:
@@ -33,6 +47,7 @@ class Settings:
     tmp_dir: Path | None = None     # parent of the studio's private temp root
     threads: int | None = None      # torch threads; None keeps torch's default
     bf16: bool = True
+    control_examples: Path | None = None   # a folder of MoLA-style control .npy files offered in the Control tab
 
     def __post_init__(self):
         if not 1 <= self.port <= 65535:
@@ -45,6 +60,8 @@ class Settings:
             raise ValueError("session ttl and prune interval must be positive")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be positive, got {self.threads}")
+        if self.control_examples is not None and not Path(self.control_examples).is_dir():
+            raise ValueError(f"{self.control_examples}: the control examples folder does not exist")
 
 
 def default_host() -> str:

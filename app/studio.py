@@ -1,6 +1,7 @@
-"""What the studio does, without any UI: generate a motion with its attention, save and
-render it, and build (cached) attention views. Every model call goes through the public
-pipeline API and every picture through salad.render."""
+"""What the studio does, without any UI: generate a motion with its attention, edit one by
+attention modulation, guide one with control targets; save and render the results, and build
+(cached) views of them. Every model call goes through the public pipeline API and every
+picture through salad.render."""
 from __future__ import annotations
 
 import os
@@ -15,34 +16,63 @@ import numpy as np
 
 from salad.motion import skeleton as sk
 
-from .figures import frames_to_restyle_slider
+from . import controls
+from .figures import control_top_view, frames_to_restyle_slider, note_figure
 from .session import Result, Session
-from .validation import AttentionRequest, GenerateRequest
+from .validation import AttentionRequest, ControlRequest, EditRequest, GenerateRequest
 from .workspace import Workspace
 
 Progress = Callable[[str, int, int], None]   # (stage, done, total)
+# Words an edit may add or swap that carry no motion of their own ("a" -> "an" before an adjective).
+FUNCTION_WORDS = frozenset("a an the their his her its and or with to of in on at while as".split())
 
 
 def _quiet(stage: str, done: int, total: int) -> None:
     pass
 
 
-def file_stem(req: GenerateRequest) -> str:
-    """A readable, safe file name stem: the prompt's first words and the seed."""
-    slug = re.sub(r"[^a-z0-9]+", "-", req.prompt.lower()).strip("-")[:40].strip("-") or "motion"
-    return f"{slug}_seed{req.seed}"
+def slug(text: str, limit: int = 40) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")[:limit].strip("-")
 
 
-def _save_npz(path: Path, **arrays) -> Path:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz")
+def file_stem(req) -> str:
+    """A readable, safe file name stem: the (edited) prompt's first words, what was done and the seed."""
+    if isinstance(req, EditRequest):
+        return f"{slug(req.edited_prompt, 32) or 'motion'}_{req.mode}_seed{req.seed}"
+    if isinstance(req, ControlRequest):
+        return f"{slug(req.prompt, 32) or 'motion'}_{req.task}_seed{req.seed}"
+    return f"{slug(req.prompt) or 'motion'}_seed{req.seed}"
+
+
+def _atomic_save(path: Path, write) -> Path:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
+            write(f)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def _save_npz(path: Path, **arrays) -> Path:
+    return _atomic_save(path, lambda f: np.savez(f, **arrays))
+
+
+def save_motion(motion, folder: Path, stem: str, prefix: str = "") -> dict[str, Path]:
+    """NPY joints, NPY features, NPZ (both) and BVH of a motion; keys carry `prefix`."""
+    files = {f"{prefix}{ext}": motion.save(folder / f"{stem}.{ext}") for ext in ("npy", "npz", "bvh")}
+    files[f"{prefix}features"] = _atomic_save(folder / f"{stem}_features.npy",
+                                              lambda f: np.save(f, motion.features.astype(np.float32)))
+    return files
+
+
+def attention_arrays(maps, prefix: str = "") -> dict[str, np.ndarray]:
+    """An AttentionMaps as NPZ entries: the all-layers, all-steps mean and the raw maps."""
+    return {f"{prefix}words": np.array(maps.words), f"{prefix}attention": maps.aggregate().astype(np.float32),
+            f"{prefix}raw": maps.data.astype(np.float32), f"{prefix}raw_layers": np.array(maps.layers),
+            f"{prefix}frames": np.array(maps.frames)}
 
 
 def word_tint(att_word: np.ndarray) -> np.ndarray:
@@ -56,9 +86,10 @@ def word_tint(att_word: np.ndarray) -> np.ndarray:
 class Studio:
     """Generation and attention views over one loaded pipeline, for many sessions."""
 
-    def __init__(self, pipe, workspace: Workspace):
+    def __init__(self, pipe, workspace: Workspace, control_examples: Path | None = None):
         self.pipe = pipe
         self.workspace = workspace
+        self.control_examples = control_examples      # a folder of control .npy files, or None
         # Sampling swaps an attention controller into the shared denoiser, so only one
         # sampling runs at a time; rendering (its own lock) overlaps with the next sampling.
         self._model_lock = threading.Lock()
@@ -72,27 +103,39 @@ class Studio:
         return Session(self.workspace.session_key(session_hash), folder)
 
     # ------------------------------------------------------------ generation
-    def generate(self, session: Session, req: GenerateRequest, progress: Progress = _quiet) -> Result:
-        """Sample, save (NPY, NPZ, BVH) and render (MP4) one motion; it becomes the session's current one."""
-        from salad.render import render_video
-
-        folder = session.new_folder()
+    def _sample(self, steps: int, progress: Progress, run: Callable):
+        """run(report) under the model lock -> (its value, {"wait_s", "sample_s"})."""
         t0 = time.perf_counter()
         if self._model_lock.locked():
-            progress("waiting for the model", 0, req.steps)
+            progress("waiting for the model", 0, steps)
         with self._model_lock:
-            t_wait = time.perf_counter()
-            motion = self.pipe.generate(req.prompt, seconds=req.seconds, seed=req.seed, steps=req.steps,
-                                        cfg=req.cfg, sampler=req.sampler, return_attention=True,
-                                        progress=lambda i, n: progress("sampling", i, n))
-        t1 = time.perf_counter()
+            t1 = time.perf_counter()
+            value = run(lambda i, n: progress("sampling", i, n))
+        return value, {"wait_s": t1 - t0, "sample_s": time.perf_counter() - t1}
+
+    @staticmethod
+    def _rendered(progress: Progress, render: Callable) -> tuple[Path, float]:
+        t0 = time.perf_counter()
+        path = render(lambda i, n: progress("rendering", i, n))
+        return path, time.perf_counter() - t0
+
+    def generate(self, session: Session, req: GenerateRequest, progress: Progress = _quiet) -> Result:
+        """Sample, save (NPY joints and features, NPZ, BVH) and render (MP4) one motion; it becomes
+        the session's current one. An identical earlier request of the session is answered from its files."""
+        from salad.render import render_video
+
+        reused = session.reuse("generate", req)
+        if reused is not None:
+            return reused
+        folder = session.new_folder()
+        motion, timings = self._sample(req.steps, progress, lambda report: self.pipe.generate(
+            req.prompt, seconds=req.seconds, seed=req.seed, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
+            return_attention=True, progress=report))
         stem = file_stem(req)
-        files = {ext: motion.save(folder / f"{stem}.{ext}") for ext in ("npy", "npz", "bvh")}
-        files["mp4"] = render_video(motion.joints, folder / f"{stem}.mp4", fps=motion.fps, title=motion.text,
-                                    progress=lambda i, n: progress("rendering", i, n))
-        t2 = time.perf_counter()
-        result = Result(req, motion, folder, files,
-                        {"wait_s": t_wait - t0, "sample_s": t1 - t_wait, "render_s": t2 - t1, "total_s": t2 - t0})
+        files = save_motion(motion, folder, stem)
+        files["mp4"], timings["render_s"] = self._rendered(progress, lambda report: render_video(
+            motion.joints, folder / f"{stem}.mp4", fps=motion.fps, title=motion.text, progress=report))
+        result = Result(req, motion, folder, files, timings)
         session.add(result)
         return result
 
@@ -154,3 +197,133 @@ class Studio:
                                 progress=lambda i, n: progress("rendering", i, n))
 
         return result.cached(("video", req.word, req.layers, req.steps), make)
+
+    # ------------------------------------------------------------ editing
+    def edit(self, session: Session, req: EditRequest, progress: Progress = _quiet) -> Result:
+        """Run one edit (source and edited branches in one batched sampling), save both motions
+        and render them side by side; it becomes the session's latest edit."""
+        from salad.render import render_side_by_side
+
+        reused = session.reuse("edit", req)
+        if reused is not None:
+            return reused
+        folder = session.new_folder()
+        res, timings = self._sample(req.steps, progress, lambda report: self.pipe.edit(
+            req.source, req.target, mode=req.mode, seed=req.seed, seconds=req.seconds, steps=req.steps, cfg=req.cfg,
+            sampler=req.sampler, tau=req.tau, reweight=dict(req.reweight) or None, mirror=req.mirror,
+            self_inject=req.self_inject, progress=report))
+        stem = file_stem(req)
+        files = save_motion(res.source, folder, f"{stem}_source", "source_")
+        files |= save_motion(res.edited, folder, f"{stem}_edited", "edited_")
+        files["mp4"], timings["render_s"] = self._rendered(progress, lambda report: render_side_by_side(
+            [res.source.joints, res.edited.joints], ["source", "edited"], folder / f"{stem}_side-by-side.mp4",
+            fps=res.edited.fps, progress=report))
+        result = Result(req, res.edited, folder, files, timings, kind="edit", source=res.source)
+        session.add(result)
+        return result
+
+    def edit_word_map(self, result: Result) -> list[int]:
+        """For each word of the edited prompt, the source word it corresponds to, or -1 (added)."""
+        from salad.editing.align import align_words
+
+        src, tgt = result.source.attention.words, result.motion.attention.words
+        mode = result.request.mode if result.request.mode in ("swap", "refine") else "same"
+        return result.cached(("word map",), lambda: align_words(src, tgt, mode))
+
+    def edit_aggregates(self, result: Result) -> tuple[np.ndarray, np.ndarray]:
+        """(words, 7, T) attention of the source and of the edited motion, all layers and steps."""
+        return result.cached(("edit aggregates",), lambda: (result.source.attention.aggregate(),
+                                                            result.motion.attention.aggregate()))
+
+    def edit_focus_word(self, result: Result) -> int:
+        """The edited prompt's word whose attention the edit changed: the first swapped or
+        added word, else the re-weighted word, else the word whose map moved most."""
+        req, words = result.request, result.motion.attention.words
+        src_words = result.source.attention.words
+        changed = [i for i, j in enumerate(self.edit_word_map(result)) if j < 0 or src_words[j] != words[i]]
+        if changed:
+            return next((i for i in changed if words[i] not in FUNCTION_WORDS), changed[0])
+        if req.reweight and req.reweight[0][0] in words:
+            return words.index(req.reweight[0][0])
+        src, edited = self.edit_aggregates(result)
+        if src.shape != edited.shape:      # different lengths: compare the shared frames
+            n = min(src.shape[-1], edited.shape[-1])
+            src, edited = src[..., :n], edited[..., :n]
+        return int(np.abs(edited - src).sum(axis=(1, 2)).argmax())
+
+    def edit_heatmaps(self, result: Result, word: int) -> tuple:
+        """The chosen edited-prompt word's map in the source and in the edited motion, on one
+        colour scale (a note instead of the source map when the word was added)."""
+        from salad.render import attention_heatmap
+
+        def make():
+            src, edited = self.edit_aggregates(result)
+            j = self.edit_word_map(result)[word]
+            name = result.motion.attention.words[word]
+            zmax = float(max(edited[word].max(), src[j].max() if j >= 0 else 0.0)) or None
+            right = attention_heatmap(edited[word], name, fps=result.motion.fps, zmax=zmax)
+            right.update_layout(title_text=f"edited: “{name}” → body parts")
+            if j < 0:
+                left = note_figure(f"“{name}” was added: the source prompt has no such word")
+            else:
+                left = attention_heatmap(src[j], result.source.attention.words[j], fps=result.source.fps, zmax=zmax)
+                left.update_layout(title_text=f"source: “{result.source.attention.words[j]}” → body parts")
+            return left, right
+
+        return result.cached(("edit heatmaps", word), make)
+
+    def edit_downloads(self, result: Result, progress: Progress = _quiet) -> list[Path]:
+        """Every file of an edit: the side-by-side MP4, the edited motion's own MP4, BVH, NPY
+        joints and features, NPZ per motion, and both attention maps as NPZ and PNG."""
+        from salad.render import attention_png, render_video
+
+        def make() -> list[Path]:
+            stem, folder = file_stem(result.request), result.folder
+            src, edited = result.source, result.motion
+            single = render_video(edited.joints, folder / f"{stem}_edited.mp4", fps=edited.fps, title=edited.text,
+                                  progress=lambda i, n: progress("rendering", i, n))
+            npz = _save_npz(folder / f"{stem}_attention.npz", parts=np.array(sk.BODY_PARTS.names),
+                            fps=np.array(edited.fps), **attention_arrays(src.attention, "source_"),
+                            **attention_arrays(edited.attention, "edited_"))
+            src_agg, edited_agg = self.edit_aggregates(result)
+            pngs = [attention_png(agg, words, folder / f"{stem}_attention_{which}.png", fps=edited.fps)
+                    for which, agg, words in (("source", src_agg, src.attention.words),
+                                              ("edited", edited_agg, edited.attention.words))]
+            order = ("mp4", "edited_bvh", "source_bvh", "edited_npy", "source_npy", "edited_features",
+                     "source_features", "edited_npz", "source_npz")
+            return [result.files["mp4"], single] + [result.files[k] for k in order[1:]] + [npz, *map(Path, pngs)]
+
+        return result.cached(("edit downloads",), make)
+
+    # ------------------------------------------------------------ guided control
+    def control(self, session: Session, req: ControlRequest, signal, progress: Progress = _quiet) -> Result:
+        """Sample a motion guided by `signal`, save it with its signal, and render it with the
+        targets (and a path on the floor) drawn; it becomes the session's latest control result."""
+        from salad.render import render_video
+
+        reused = session.reuse("control", req)
+        if reused is not None:
+            return reused
+        folder = session.new_folder()
+        motion, timings = self._sample(req.steps, progress, lambda report: self.pipe.control(
+            req.prompt, signal=signal, seed=req.seed, strength=req.strength, steps=req.steps, cfg=req.cfg,
+            progress=report))
+        n = motion.frames
+        stem = file_stem(req)
+        files = save_motion(motion, folder, stem)
+        files["signal"] = _save_npz(folder / f"{stem}_control.npz", targets=signal.targets, mask=signal.mask,
+                                    fps=np.array(motion.fps))
+        # Free coordinates of a target take the motion's own value, so a pelvis path's markers
+        # ride at pelvis height while its ribbon lies on the floor.
+        shown = np.where(signal.mask[:n], signal.targets[:n], motion.joints)
+        files["mp4"], timings["render_s"] = self._rendered(progress, lambda report: render_video(
+            motion.joints, folder / f"{stem}.mp4", fps=motion.fps, title=motion.text, targets=shown,
+            target_mask=signal.joint_mask()[:n], trajectory=controls.pelvis_path(signal, n), progress=report))
+        result = Result(req, motion, folder, files, timings, kind="control", signal=signal)
+        session.add(result)
+        return result
+
+    def control_figure(self, result: Result):
+        sig, m = result.signal, result.motion
+        return result.cached(("top view",), lambda: control_top_view(
+            sig.targets[:m.frames], sig.mask[:m.frames], m.joints))

@@ -6,8 +6,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from numbers import Real
+from pathlib import Path
 
-from .settings import MAX_CFG, MAX_SEED, MAX_STEPS
+from salad.motion.representation import FPS
+from salad.pipeline import EDIT_MODES, MIN_AUTO_FRAMES
+
+from .settings import (
+    DEFAULT_TAU, MAX_CFG, MAX_PATH_SPEED, MAX_REWEIGHT, MAX_SEED, MAX_STEPS, MAX_STRENGTH, MIRROR_PARTS,
+)
 
 
 @dataclass(frozen=True)
@@ -60,25 +66,47 @@ def _flag(name: str, value) -> bool:
     raise ValueError(f"{name} must be true or false, got {value!r}")
 
 
-def parse_generate(pipe, prompt, auto_length, seconds, seed, steps, cfg, sampler) -> GenerateRequest:
-    """Validate the Generate panel's values against `pipe` (prompt length, vocabulary,
-    duration range) and the studio's limits."""
-    text = pipe.check_prompt(prompt)
+def check_text(pipe, prompt, what: str = "prompt") -> str:
+    """The pipeline's prompt check plus the text encoder's vocabulary; messages name `what`."""
+    try:
+        text = pipe.check_prompt(prompt)
+    except ValueError as exc:
+        msg = str(exc)
+        if what != "prompt":
+            msg = what + msg[len("prompt"):] if msg.startswith("prompt") else f"{what}: {msg}"
+        raise ValueError(msg) from None
     unknown = pipe.text_encoder.unknown_words(text)
     if unknown:
         listed = ", ".join(f"“{w}”" for w in unknown)
-        raise ValueError(f"the text encoder cannot read {listed}; describe the motion in plain English words")
-    duration = None
-    if not _flag("automatic length", auto_length):
-        if seconds is None:
-            raise ValueError("seconds is required when the length is not automatic")
-        duration = _number("seconds", seconds, -math.inf, math.inf)
-        pipe.frames_for(duration)   # the pipeline's own range check and message
+        where = "" if what == "prompt" else f" in the {what}"
+        raise ValueError(f"the text encoder cannot read {listed}{where}; describe the motion in plain English words")
+    return text
+
+
+def _duration(pipe, auto_length, seconds) -> float | None:
+    if _flag("automatic length", auto_length):
+        return None
+    if seconds is None:
+        raise ValueError("seconds is required when the length is not automatic")
+    duration = _number("seconds", seconds, -math.inf, math.inf)
+    pipe.frames_for(duration)   # the pipeline's own range check and message
+    return duration
+
+
+def _sampling(pipe, seed, steps, cfg, sampler) -> tuple[int, int, float, str]:
     n_steps = _integer("steps", steps, 1, MAX_STEPS)
     scale = _number("CFG scale", cfg, 0.0, MAX_CFG)
     n_steps, scale, sampler, _ = pipe.check_sampling(n_steps, scale, sampler)
-    return GenerateRequest(prompt=text, seconds=duration, seed=_integer("seed", seed, 0, MAX_SEED),
-                           steps=n_steps, cfg=scale, sampler=sampler)
+    return _integer("seed", seed, 0, MAX_SEED), n_steps, scale, sampler
+
+
+def parse_generate(pipe, prompt, auto_length, seconds, seed, steps, cfg, sampler) -> GenerateRequest:
+    """Validate the Generate panel's values against `pipe` (prompt length, vocabulary,
+    duration range) and the studio's limits."""
+    text = check_text(pipe, prompt)
+    duration = _duration(pipe, auto_length, seconds)
+    seed, n_steps, scale, sampler = _sampling(pipe, seed, steps, cfg, sampler)
+    return GenerateRequest(prompt=text, seconds=duration, seed=seed, steps=n_steps, cfg=scale, sampler=sampler)
 
 
 def parse_word(words: list[str], word) -> int | None:
@@ -111,3 +139,139 @@ def parse_attention(maps, word, layers, first_step, last_step) -> AttentionReque
     if first > last:
         raise ValueError(f"the first step ({first}) comes after the last step ({last})")
     return AttentionRequest(word=parse_word(maps.words, word), layers=tuple(chosen), steps=(first - 1, last))
+
+
+# ---------------------------------------------------------------- editing
+
+@dataclass(frozen=True)
+class EditRequest:
+    source: str
+    target: str | None              # swap / refine: the edited prompt; None: the source prompt is kept
+    mode: str                       # swap | refine | reweight | mirror
+    tau: float | None               # swap / refine only
+    reweight: tuple[tuple[str, float], ...]   # (word of the edited prompt, scale s)
+    mirror: str | None              # lower | upper | all
+    self_inject: float
+    seconds: float | None
+    seed: int
+    steps: int
+    cfg: float
+    sampler: str
+
+    @property
+    def edited_prompt(self) -> str:
+        return self.target or self.source
+
+
+def _choice(name: str, value, options) -> str:
+    if not isinstance(value, str) or value not in options:
+        raise ValueError(f"{name} must be one of {', '.join(options)}, got {value!r}")
+    return value
+
+
+def parse_edit(pipe, source, mode, target, tau, reweight_word, reweight_scale, mirror, self_inject,
+               auto_length, seconds, seed, steps, cfg, sampler) -> EditRequest:
+    """Validate the Edit panel. swap and refine need a target prompt (swap: as many words as
+    the source); re-weighting names a word of the edited prompt (required in reweight mode,
+    optional with swap/refine); mirroring names a body half (all of it when mirror mode names none)."""
+    mode = _choice("edit mode", mode, EDIT_MODES)
+    src = check_text(pipe, source, "source prompt")
+    tgt, t = None, None
+    if mode in ("swap", "refine"):
+        if target is None or (isinstance(target, str) and not target.strip()):
+            raise ValueError(f"{'word swap' if mode == 'swap' else 'refine'} needs a target prompt: "
+                             + ("the source prompt with words replaced" if mode == "swap"
+                                else "the source prompt with words added"))
+        tgt = check_text(pipe, target, "target prompt")
+        src_words, tgt_words = pipe.text_encoder.split_words(src), pipe.text_encoder.split_words(tgt)
+        if src_words == tgt_words:
+            raise ValueError("the target prompt has the same words as the source prompt; "
+                             + ("replace a word" if mode == "swap" else "add words"))
+        if mode == "swap" and len(src_words) != len(tgt_words):
+            raise ValueError(f"word swap needs as many words in the target prompt as in the source "
+                             f"({len(tgt_words)} vs {len(src_words)}); use refine to add words")
+        t = _number("tau", DEFAULT_TAU[mode] if tau is None else tau, 0.0, 1.0)
+    words = pipe.text_encoder.split_words(tgt or src)
+    weights: tuple[tuple[str, float], ...] = ()
+    chosen = reweight_word.strip().lower() if isinstance(reweight_word, str) else reweight_word
+    if chosen not in (None, "", "none"):
+        if not isinstance(chosen, str):
+            raise ValueError(f"the word to re-weight must be text, got {reweight_word!r}")
+        if chosen not in words:
+            raise ValueError(f"cannot re-weight “{reweight_word}”: it is not a word of the "
+                             f"{'target' if tgt else 'source'} prompt ({', '.join(words)})")
+        weights = ((chosen, _number("re-weighting scale s", reweight_scale, -MAX_REWEIGHT, MAX_REWEIGHT)),)
+    elif mode == "reweight":
+        raise ValueError(f"choose the word to re-weight, one of: {', '.join(words)}")
+    half = None if mirror in (None, "", "none") else _choice("mirror", mirror, MIRROR_PARTS)
+    if mode == "mirror" and half is None:
+        half = "all"            # as the pipeline does: mirroring without a body half mirrors both
+    duration = _duration(pipe, auto_length, seconds)
+    seed, n_steps, scale, sampler = _sampling(pipe, seed, steps, cfg, sampler)
+    return EditRequest(source=src, target=tgt, mode=mode, tau=t, reweight=weights, mirror=half,
+                       self_inject=_number("self-attention injection", self_inject, 0.0, 1.0), seconds=duration,
+                       seed=seed, steps=n_steps, cfg=scale, sampler=sampler)
+
+
+# ---------------------------------------------------------------- guided control
+
+@dataclass(frozen=True)
+class ControlRequest:
+    prompt: str
+    task: str                       # a key of app.controls.TASKS
+    detail: tuple                   # what the signal is made from (preset + timing, file digest, keyframes...)
+    base: str | None                # id of the generated motion the signal was taken from
+    strength: float
+    seed: int
+    steps: int
+    cfg: float
+
+
+def control_signal(pipe, task, preset, seconds, speed, upload, example, keyframes, *, base=None,
+                   upload_root=None, examples_dir=None):
+    """Build the Control panel's signal -> (ControlSignal, detail, base id). `base` is the
+    session's last generated Result (in-betweening and upper-body edits start from it);
+    uploads must lie under `upload_root`; examples are file names in `examples_dir`."""
+    from . import controls
+
+    task = _choice("task", task, tuple(controls.TASKS))
+    span = (MIN_AUTO_FRAMES, pipe.canvas_frames)
+    if task == "path":
+        preset = _choice("path", preset, tuple(controls.PRESETS))
+        frames = pipe.frames_for(_number("seconds", seconds, -math.inf, math.inf))
+        v = _number("speed", speed, 0.1, MAX_PATH_SPEED)
+        return controls.preset_signal(preset, frames, v, FPS), (preset, frames, v), None
+    if task in ("mola", "targets"):
+        up = controls.upload_file(upload, upload_root) if upload_root is not None else None
+        if up is None and task == "mola" and example not in (None, ""):
+            names = controls.list_examples(examples_dir)
+            if example not in names:
+                raise ValueError(f"“{example}” is not one of the control examples"
+                                 + (f" ({', '.join(names)})" if names else " (none are installed)"))
+            path, name, digest = Path(examples_dir) / example, example, "example"
+        elif up is None:
+            raise ValueError("upload a .npy file" + (" or choose an example" if task == "mola" else ""))
+        else:
+            path, name, digest = up.path, up.name, up.digest
+        read = controls.mola_signal if task == "mola" else controls.target_signal
+        return read(path, name, span, FPS), (name, digest), None
+    if base is None:
+        raise ValueError("generate a motion first (Generate tab): "
+                         + ("its poses are the keyframes" if task == "inbetween" else "its lower body is kept"))
+    joints = base.motion.joints
+    if task == "inbetween":
+        kept = controls.parse_keyframes(keyframes, len(joints))
+        return controls.inbetween_signal(joints, kept), kept, base.id
+    return controls.upper_body_signal(joints), (), base.id
+
+
+def parse_control(pipe, prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed,
+                  steps, cfg, **where):
+    """Validate the Control panel and build its signal -> (ControlRequest, ControlSignal);
+    `where` are control_signal's keyword arguments."""
+    text = check_text(pipe, prompt)
+    signal, detail, base_id = control_signal(pipe, task, preset, seconds, speed, upload, example, keyframes, **where)
+    seed, n_steps, scale, _ = _sampling(pipe, seed, steps, cfg, "ddim")
+    req = ControlRequest(prompt=text, task=task, detail=detail, base=base_id,
+                         strength=_number("strength", strength, 0.0, MAX_STRENGTH), seed=seed, steps=n_steps, cfg=scale)
+    return req, signal

@@ -92,9 +92,12 @@ def test_generate_returns_video_figure_and_files(client, pipe):
     steps = fig["layout"]["sliders"][0]["steps"]
     assert len(steps) == 32 and steps[5]["method"] == "restyle" and not fig.get("frames")
     assert "happily" in summary and "32 frames" in summary and "seed 3" in summary
-    by_ext = {Path(f).suffix: Path(f) for f in files}
-    assert sorted(by_ext) == [".bvh", ".mp4", ".npy", ".npz"]
+    names = [Path(f).name for f in files]
+    stem = "a-person-waves-their-right-hand-happily_seed3"
+    assert names == [f"{stem}.mp4", f"{stem}.bvh", f"{stem}.npy", f"{stem}_features.npy", f"{stem}.npz"]
+    by_ext = {Path(f).suffix: Path(f) for f in files if not f.endswith("_features.npy")}
     joints = np.load(by_ext[".npy"])
+    np.testing.assert_array_equal(np.load(files[3]).shape, (32, 263))
     assert joints.shape == (32, 22, 3) and joints.dtype == np.float32 and np.isfinite(joints).all()
     with np.load(by_ext[".npz"]) as z:
         np.testing.assert_array_equal(z["joints"], joints)
@@ -185,13 +188,14 @@ def test_eight_simultaneous_sessions_get_their_own_motions(server, pipe, tmp_pat
         prompt, seconds, seed = jobs[i]
         out = generate(c, prompt, seconds=seconds, seed=seed)
         npy = next(f for f in out[3] if f.endswith(".npy"))
-        return np.load(npy), out[2], [w[0] for w in out[4]["choices"]]
+        # the client is kept: a session whose client has gone is closed and its folder removed
+        return np.load(npy), out[2], [w[0] for w in out[4]["choices"]], c
 
     started = time.perf_counter()
     with ThreadPoolExecutor(8) as pool:
         results = list(pool.map(run, range(8)))
     elapsed = time.perf_counter() - started
-    for i, (joints, summary, words) in enumerate(results):
+    for i, (joints, summary, words, _) in enumerate(results):
         prompt, seconds, seed = jobs[i]
         assert joints.shape == expected[i].shape, f"session {i} got another session's length"
         np.testing.assert_allclose(joints, expected[i], atol=1e-3, err_msg=f"session {i}")
@@ -329,12 +333,18 @@ def test_sessions_keep_recent_results_and_cache_renders(pipe, tmp_path):
     studio = Studio(pipe, ws)
     try:
         session = studio.session(None, "client-1")
-        req = GenerateRequest("a person waves their left hand", 1.0, 0, 3, 7.5, "ddim")
+        reqs = [GenerateRequest("a person waves their left hand", 1.0, seed, 3, 7.5, "ddim")
+                for seed in range(KEEP_RESULTS + 1)]
         stages = []
-        results = [studio.generate(session, req, lambda s, i, n: stages.append(s)) for _ in range(KEEP_RESULTS + 1)]
+        results = [studio.generate(session, req, lambda s, i, n: stages.append(s)) for req in reqs]
         assert {"sampling", "rendering"} <= set(stages)
         assert not results[0].folder.exists() and all(r.folder.exists() for r in results[1:])
-        current = session.current
+        # the same request again is answered from the kept result, which becomes current
+        stages.clear()
+        assert studio.generate(session, reqs[1], lambda s, i, n: stages.append(s)) is results[1] and not stages
+        assert session.current is results[1] and results[1].reused == 1
+        current = studio.generate(session, reqs[-1])
+        assert current is results[-1] and session.current is current
         areq = parse_attention(current.motion.attention, "left", [0, 1, 2], 1, 3)
         first = studio.word_video(current, areq)
         mtime = first.stat().st_mtime_ns

@@ -1,5 +1,11 @@
 """The studio in a real browser: Debian's Chromium driven by Playwright against `python -m app`
-on the tiny trained model. Screenshots go to test-artifacts/browser/."""
+on the tiny trained model. Screenshots go to test-artifacts/browser/, and also to
+$SALAD_SCREENSHOTS (e.g. assets/screenshots, relative to the repository) when that is set.
+
+To shoot the screenshots with a real model:
+    SALAD_SCREENSHOTS=assets/screenshots SALAD_BROWSER_MODEL=assets/model SALAD_BROWSER_STEPS=50 \
+        pytest tests/test_browser.py
+"""
 import os
 import signal
 import socket
@@ -21,6 +27,7 @@ CHROMIUM = Path("/usr/bin/chromium")
 FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
          "--disable-component-update", "--disable-sync", "--autoplay-policy=no-user-gesture-required"]
 PROMPT = "a person waves their right hand happily"
+STEPS = int(os.environ.get("SALAD_BROWSER_STEPS", "4"))     # sampling steps of the edit and control runs
 
 pytestmark = pytest.mark.browser
 
@@ -32,13 +39,15 @@ def free_port() -> int:
 
 
 @pytest.fixture(scope="module")
-def studio_url(tiny_model, tmp_path_factory):
-    """`python -m app` on a free port, as a user starts it; stopped with SIGTERM afterwards."""
+def studio_url(request, tmp_path_factory):
+    """`python -m app` on a free port, as a user starts it; stopped with SIGTERM afterwards.
+    The model is $SALAD_BROWSER_MODEL, else the tiny trained one."""
+    model = os.environ.get("SALAD_BROWSER_MODEL") or request.getfixturevalue("tiny_model")
     port = free_port()
     logs = tmp_path_factory.mktemp("studio-log") / "studio.log"
     env = dict(os.environ, OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
     with open(logs, "w") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "app", "--model", str(tiny_model), "--port", str(port)],
+        proc = subprocess.Popen([sys.executable, "-m", "app", "--model", str(model), "--port", str(port)],
                                 cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}/"
     try:
@@ -83,6 +92,16 @@ def page(tmp_path):
             context.close()
 
 
+def shoot(target, name: str) -> None:
+    """Screenshot a page or an element into the artifacts (and $SALAD_SCREENSHOTS when set)."""
+    target.screenshot(path=str(ARTIFACTS / name))
+    extra = os.environ.get("SALAD_SCREENSHOTS")
+    if extra:
+        folder = Path(extra) if Path(extra).is_absolute() else REPO / extra
+        folder.mkdir(parents=True, exist_ok=True)
+        target.screenshot(path=str(folder / name))
+
+
 def video_size(page, selector: str):
     return page.evaluate(f"""() => {{
         const v = document.querySelector({selector!r});
@@ -113,7 +132,7 @@ def test_generate_then_explore_a_words_attention(studio_url, page):
     page.mouse.click(rail["x"] + 0.9 * rail["width"], rail["y"] + rail["height"] / 2)
     page.wait_for_function(f"() => document.querySelector({plot!r}).layout.sliders[0].active > 0")
     page.wait_for_function(f"() => {all_z} !== window.__zBefore", timeout=15000)
-    page.locator("#generate-tab").screenshot(path=str(ARTIFACTS / "generate.png"))
+    shoot(page.locator("#generate-tab"), "generate.png")
 
     # Pick a word: its heatmap, the tinted skeleton video and the overview of all words appear.
     page.get_by_role("tab", name="Attention").click()
@@ -128,7 +147,7 @@ def test_generate_then_explore_a_words_attention(studio_url, page):
     n_panels = page.evaluate("() => document.querySelector('#attention-overview .js-plotly-plot')"
                              ".data.filter(t => t.type === 'heatmap').length")
     assert n_panels == len(PROMPT.split())
-    page.locator("#attention-tab").screenshot(path=str(ARTIFACTS / "attention.png"))
+    shoot(page.locator("#attention-tab"), "attention.png")
     page.screenshot(path=str(ARTIFACTS / "page.png"), full_page=True)
     assert not page.outside_requests, f"the page reached outside hosts: {page.outside_requests[:5]}"
 
@@ -144,3 +163,97 @@ def test_bad_input_shows_a_message_and_the_page_keeps_working(studio_url, page):
     page.locator("#generate-button").click()
     page.wait_for_function("() => { const v = document.querySelector('#motion-video video');"
                            " return v && v.videoWidth > 0; }")
+
+
+def set_slider(page, selector: str, value) -> None:
+    box = page.locator(f"{selector} input[type=number]")
+    box.fill(str(value))
+    box.press("Enter")
+
+
+def wait_for_new_video(page, selector: str, previous: str | None, width: int) -> str:
+    """Wait until the <video> under `selector` shows a new file of the given width; returns its src."""
+    page.wait_for_function(f"""([sel, prev, width]) => {{
+        const v = document.querySelector(sel);
+        return v && v.src && v.src !== prev && v.videoWidth === width; }}""", arg=[selector, previous, width])
+    return page.evaluate(f"() => document.querySelector({selector!r}).src")
+
+
+def settle_edit(page) -> None:
+    """Before a screenshot for the docs: wait for the edit's remaining downloads to be made."""
+    if os.environ.get("SALAD_SCREENSHOTS"):
+        page.wait_for_function("() => document.querySelectorAll('#edit-downloads a').length >= 13")
+
+
+def plot_title(page, selector: str) -> str:
+    return page.evaluate(f"() => document.querySelector({selector!r}).layout.title.text")
+
+
+def test_every_edit_mode_shows_source_and_edit_side_by_side(studio_url, page):
+    page.goto(studio_url, wait_until="load")
+    page.get_by_role("tab", name="Edit").click()
+    page.locator("#edit-tab").get_by_text("Sampling", exact=True).click()
+    set_slider(page, "#edit-steps", STEPS)
+
+    src, video = None, "#edit-video video"
+    source_map, edited_map = "#edit-source-heatmap .js-plotly-plot", "#edit-edited-heatmap .js-plotly-plot"
+    # word swap (the panel opens on a right-to-left hand swap)
+    page.locator("#edit-button").click()
+    src = wait_for_new_video(page, video, src, 768)
+    page.wait_for_function(f"() => {{ const g = document.querySelector({edited_map!r});"
+                           " return g && g.data && g.data[0].type === 'heatmap'; }")
+    assert "right" in plot_title(page, source_map) and "left" in plot_title(page, edited_map)
+    assert "Word swap" in page.locator("#edit-summary").inner_text()
+    page.wait_for_function("() => document.querySelectorAll('#edit-downloads a').length >= 13")
+    shoot(page.locator("#edit-tab"), "edit-swap.png")
+
+    # picking another word redraws both maps
+    page.locator("#edit-word label", has_text="hand").click()
+    page.wait_for_function(f"() => document.querySelector({edited_map!r}).layout.title.text.includes('hand')")
+
+    # refine: words added to the source
+    page.locator("#edit-mode label", has_text="refine").click()
+    page.locator("#edit-target textarea").fill("a person waves their right hand happily and slowly")
+    page.locator("#edit-button").click()
+    src = wait_for_new_video(page, video, src, 768)
+    page.wait_for_function("() => document.querySelector('#edit-summary').innerText.includes('Refinement')")
+    settle_edit(page)
+    shoot(page.locator("#edit-tab"), "edit-refine.png")
+
+    # re-weighting: the picker offers the source's words and starts on the last one
+    page.locator("#edit-mode label", has_text="re-weight").click()
+    page.wait_for_function("() => document.querySelector('#edit-reweight-word input').value === 'happily'")
+    page.locator("#edit-button").click()
+    src = wait_for_new_video(page, video, src, 768)
+    page.wait_for_function("() => document.querySelector('#edit-summary').innerText.includes('Re-weighted')")
+    settle_edit(page)
+    shoot(page.locator("#edit-tab"), "edit-reweight.png")
+
+    # mirroring: the body half defaults to arms and legs
+    page.locator("#edit-source textarea").fill("a person waves their left hand")
+    page.locator("#edit-mode label", has_text="mirror").click()
+    page.wait_for_function("() => document.querySelector('#edit-mirror input[value=all]').checked")
+    page.locator("#edit-button").click()
+    src = wait_for_new_video(page, video, src, 768)
+    page.wait_for_function("() => document.querySelector('#edit-summary').innerText.includes('Mirrored')")
+    settle_edit(page)
+    shoot(page.locator("#edit-tab"), "edit-mirror.png")
+    assert not page.outside_requests, f"the page reached outside hosts: {page.outside_requests[:5]}"
+
+
+def test_a_path_control_shows_the_guided_motion_and_its_error(studio_url, page):
+    page.goto(studio_url, wait_until="load")
+    page.get_by_role("tab", name="Control").click()
+    preview = "#control-preview .js-plotly-plot"
+    page.wait_for_function(f"() => {{ const g = document.querySelector({preview!r});"
+                           " return g && g.data && g.data.some(t => t.name === 'target'); }")
+    page.locator("#control-tab").get_by_text("Sampling", exact=True).click()
+    set_slider(page, "#control-steps", STEPS)
+    page.locator("#control-button").click()
+    wait_for_new_video(page, "#control-video video", None, 448)
+    top = "#control-top-view .js-plotly-plot"
+    page.wait_for_function(f"() => {{ const g = document.querySelector({top!r});"
+                           " return g && g.data && g.data.some(t => t.name === 'achieved'); }")
+    assert "control error: mean" in page.locator("#control-summary").inner_text()
+    shoot(page.locator("#control-tab"), "control-path.png")
+    assert not page.outside_requests, f"the page reached outside hosts: {page.outside_requests[:5]}"

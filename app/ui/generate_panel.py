@@ -63,7 +63,8 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
                 skeleton = gr.Plot(label="3D view: drag to orbit, slide through the frames",
                                    elem_id="skeleton-plot")
             summary = gr.Markdown(elem_id="summary")
-            downloads = gr.File(label="Downloads: MP4 video, BVH (Blender), NPY joints, NPZ joints + features",
+            downloads = gr.File(label="Downloads: MP4 video, BVH (Blender), NPY joints, NPY features, "
+                                      "NPZ joints + features",
                                 file_count="multiple", interactive=False, elem_id="downloads")
     return GeneratePanel(prompt, auto_length, seconds, seed, steps, cfg, sampler, button, video, skeleton,
                          summary, downloads)

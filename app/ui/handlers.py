@@ -3,17 +3,29 @@ updates. Every failure reaches the user as a gr.Error with a readable message; n
 request sends can take the server down."""
 
 import functools
+import html
 import logging
 from collections import Counter
 
 import gradio as gr
 
+from .. import controls
+from ..figures import control_top_view, note_figure
 from ..session import Result, Session
+from ..settings import DEFAULT_TAU
 from ..studio import Studio
-from ..validation import AttentionRequest, parse_attention, parse_generate
+from ..validation import (
+    AttentionRequest, control_signal, parse_attention, parse_control, parse_edit, parse_generate, parse_word,
+)
+from .edit_panel import MODE_HELP
+from .control_panel import UPLOAD_HELP
+from .summaries import control_markdown, edit_markdown, summary_markdown
 
 log = logging.getLogger("salad.studio")
 NO_MOTION = "generate a motion first: the attention maps belong to the last generated motion"
+NO_EDIT = "run an edit first: the maps belong to the last edit"
+TARGET_LABELS = {"swap": "Target prompt (the source with words replaced)",
+                 "refine": "Target prompt (the source with words added)"}
 
 
 def guarded(fn):
@@ -51,19 +63,6 @@ def word_choices(words: list[str]) -> list[tuple[str, int]]:
     return out
 
 
-def escape_md(text: str) -> str:
-    return "".join("\\" + c if c in "\\`*_{}[]()#+-.!|<>~" else c for c in text)
-
-
-def summary_markdown(result: Result) -> str:
-    r, m, t = result.request, result.motion, result.timings
-    length = "automatic length" if r.seconds is None else f"{r.seconds:g} s requested"
-    waited = f", waited {t['wait_s']:.1f} s" if t.get("wait_s", 0) > 0.5 else ""
-    return (f"**“{escape_md(r.prompt)}”** — {m.seconds:.1f} s ({m.frames} frames, {length}), seed {r.seed}, "
-            f"{r.steps} {r.sampler.upper()} steps, CFG {r.cfg:g}. Sampled in {t['sample_s']:.1f} s, "
-            f"rendered in {t['render_s']:.1f} s{waited}.")
-
-
 class Handlers:
     """The functions the page's events call; one instance per app."""
 
@@ -86,7 +85,7 @@ class Handlers:
         session = self.studio.session(state, request.session_hash)
         result = self.studio.generate(session, req, _gr_progress(progress))
         maps = result.motion.attention
-        files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "npz")]
+        files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "features", "npz")]
         return (
             session,
             str(result.files["mp4"]),
@@ -119,6 +118,103 @@ class Handlers:
             return None
         return str(self.studio.word_video(result, req, _gr_progress(progress)))
 
+    # ------------------------------------------------------------ editing
+    def _word_picker(self, source, mode, target, current, keep: bool = True):
+        """The re-weighting picker: the words of the prompt being edited (the target with
+        swap/refine). A valid current word stays when `keep`; reweight mode always has one."""
+        text = target if mode in ("swap", "refine") and isinstance(target, str) and target.strip() else source
+        words = list(dict.fromkeys(self.studio.pipe.text_encoder.split_words(text))) if isinstance(text, str) else []
+        if keep and current in words:
+            value = current
+        else:
+            value = words[-1] if mode == "reweight" and words else ""
+        choices = ([] if mode == "reweight" else [("none", "")]) + [(w, w) for w in words]
+        return gr.Dropdown(choices=choices, value=value if value or mode != "reweight" else None)
+
+    def edit_mode(self, mode, mirror, source, target, current):
+        """Show the controls the chosen strategy uses, with its default τ; mirror mode starts on
+        arms and legs and without re-weighting (which composes with swap and refine)."""
+        if mode not in MODE_HELP:
+            raise ValueError(f"edit mode must be one of {', '.join(MODE_HELP)}, got {mode!r}")
+        with_target = mode in ("swap", "refine")
+        return (MODE_HELP[mode],
+                gr.Textbox(visible=with_target, label=TARGET_LABELS.get(mode, "Target prompt")),
+                gr.Slider(visible=with_target, value=DEFAULT_TAU.get(mode, 0.0)),
+                gr.Radio(value="all" if mode == "mirror" and mirror in (None, "none") else mirror),
+                self._word_picker(source, mode, target, current, keep=mode != "mirror"))
+
+    def edit_words(self, source, mode, target, current):
+        """The prompt changed: refill the re-weighting picker."""
+        return self._word_picker(source, mode, target, current)
+
+    def _edit_result(self, state, request: gr.Request) -> Result:
+        result = state.latest("edit") if isinstance(state, Session) else None
+        if result is None:
+            raise ValueError(NO_EDIT)
+        self.studio.session(state, request.session_hash)
+        return result
+
+    def edit(self, source, mode, target, tau, reweight_word, reweight_scale, mirror, self_inject, auto_length,
+             seconds, seed, steps, cfg, sampler, state, request: gr.Request, progress=gr.Progress()):
+        req = parse_edit(self.studio.pipe, source, mode, target, tau, reweight_word, reweight_scale, mirror,
+                         self_inject, auto_length, seconds, seed, steps, cfg, sampler)
+        session = self.studio.session(state, request.session_hash)
+        result = self.studio.edit(session, req, _gr_progress(progress))
+        focus = self.studio.edit_focus_word(result)
+        left, right = self.studio.edit_heatmaps(result, focus)
+        files = [str(result.files[k]) for k in ("mp4", "edited_bvh", "source_bvh", "edited_npy", "source_npy",
+                                                 "edited_features", "source_features", "edited_npz", "source_npz")]
+        return (session, str(result.files["mp4"]), edit_markdown(result, self.studio.edit_word_map(result)),
+                gr.Radio(choices=word_choices(result.motion.attention.words), value=focus,
+                         label="Word: its attention before and after the edit"),
+                left, right, files)
+
+    def edit_files(self, state, request: gr.Request, progress=gr.Progress()):
+        result = self._edit_result(state, request)
+        return [str(p) for p in self.studio.edit_downloads(result, _gr_progress(progress))]
+
+    def edit_attention(self, word, state, request: gr.Request):
+        result = self._edit_result(state, request)
+        index = parse_word(result.motion.attention.words, word)
+        if index is None:
+            raise ValueError("choose a word of the edited prompt")
+        return self.studio.edit_heatmaps(result, index)
+
+    # ------------------------------------------------------------ guided control
+    @staticmethod
+    def control_task(task):
+        """Show the inputs the chosen kind of targets needs."""
+        if task not in controls.TASKS:
+            raise ValueError(f"task must be one of {', '.join(controls.TASKS)}, got {task!r}")
+        return (gr.Group(visible=task == "path"), gr.Group(visible=task in UPLOAD_HELP),
+                UPLOAD_HELP.get(task, ""), gr.Textbox(visible=task == "inbetween"))
+
+    def _signal(self, task, preset, seconds, speed, upload, example, keyframes, state):
+        base = state.current if isinstance(state, Session) else None
+        return control_signal(self.studio.pipe, task, preset, seconds, speed, upload, example, keyframes, base=base,
+                              upload_root=self.studio.workspace.gradio_cache, examples_dir=self.studio.control_examples)
+
+    def control_preview(self, task, preset, seconds, speed, upload, example, keyframes, state):
+        """The targets seen from above, or why there are none yet (never an error toast:
+        the inputs may still be half filled in)."""
+        try:
+            signal, _, _ = self._signal(task, preset, seconds, speed, upload, example, keyframes, state)
+        except ValueError as exc:
+            return note_figure(html.escape(str(exc)[:160]), height=320)
+        return control_top_view(signal.targets, signal.mask)
+
+    def control(self, prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed, steps, cfg,
+                state, request: gr.Request, progress=gr.Progress()):
+        base = state.current if isinstance(state, Session) else None
+        req, signal = parse_control(self.studio.pipe, prompt, task, preset, seconds, speed, upload, example, keyframes,
+                                    strength, seed, steps, cfg, base=base,
+                                    upload_root=self.studio.workspace.gradio_cache,
+                                    examples_dir=self.studio.control_examples)
+        session = self.studio.session(state, request.session_hash)
+        result = self.studio.control(session, req, signal, _gr_progress(progress))
+        files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "features", "npz", "signal")]
+        return session, str(result.files["mp4"]), self.studio.control_figure(result), control_markdown(result), files
+
     def unload(self, request: gr.Request) -> None:
         # The tab is gone: its files go now; the session's state follows when Gradio drops it.
         try:
@@ -129,5 +225,6 @@ class Handlers:
 
 def guard_all(handlers: Handlers) -> dict:
     """The handlers wrapped by `guarded`, by name."""
-    names = ("length_mode", "generate", "attention", "attention_video")
+    names = ("length_mode", "generate", "attention", "attention_video", "edit_mode", "edit_words", "edit",
+             "edit_files", "edit_attention", "control_task", "control_preview", "control")
     return {n: guarded(getattr(handlers, n)) for n in names} | {"unload": handlers.unload}

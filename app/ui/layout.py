@@ -8,15 +8,20 @@ import gradio as gr
 from ..session import Session
 from ..settings import Settings
 from ..studio import Studio
+from ..controls import list_examples
 from .attention_panel import build_attention_panel
+from .control_panel import build_control_panel
+from .edit_panel import build_edit_panel
 from .generate_panel import build_generate_panel
-from .handlers import Handlers, escape_md, guard_all
+from .handlers import Handlers, guard_all
+from .summaries import escape_md
 
 TITLE = "salad motion studio"
 CSS = """
 #word-chips .wrap { gap: 6px; }
-#summary { min-height: 1.5em; }
-#motion-video video, #word-video video { object-fit: contain; }
+#summary, #edit-summary, #control-summary { min-height: 1.5em; }
+#motion-video video, #word-video video, #edit-video video, #control-video video { object-fit: contain; }
+.video-caption { margin-bottom: -8px; }
 footer { display: none !important; }
 """
 THEME = gr.themes.Soft(primary_hue="indigo", secondary_hue="green")
@@ -24,7 +29,9 @@ LICENCE_NOTE = ("The embedded model is trained on the Bandai-Namco Research Moti
                 "(CC BY-NC 4.0: attribution, non-commercial use).")
 
 # api_name of every event, for API clients (gradio_client) and the docs.
-API_NAMES = ("generate", "attention", "attention_video", "attention_refresh", "length_mode", "load_example")
+API_NAMES = ("generate", "attention", "attention_video", "attention_refresh", "length_mode", "load_example",
+             "edit", "edit_files", "edit_attention", "edit_mode", "edit_words", "edit_length_mode", "load_edit_example",
+             "control", "control_task", "control_preview", "control_preview_refresh")
 
 
 def _close_session(state) -> None:
@@ -52,6 +59,10 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
                 gen = build_generate_panel(studio.pipe.max_seconds)
             with gr.Tab("Attention", id="attention", elem_id="attention-tab"):
                 att = build_attention_panel()
+            with gr.Tab("Edit", id="edit", elem_id="edit-tab"):
+                ed = build_edit_panel(studio.pipe.max_seconds)
+            with gr.Tab("Control", id="control", elem_id="control-tab"):
+                ctl = build_control_panel(studio.pipe.max_seconds, list_examples(studio.control_examples))
         gr.Markdown(LICENCE_NOTE)
 
         gen.auto_length.input(h["length_mode"], gen.auto_length, gen.seconds, api_name="length_mode",
@@ -74,8 +85,51 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
                       preprocess=False, concurrency_id="views", trigger_mode="always_last")
         shown.success(h["attention_video"], attention_inputs, att.video, api_name="attention_video",
                       preprocess=False, concurrency_id="views", trigger_mode="always_last")
+        _wire_edit(h, ed, state, settings)
+        _wire_control(h, ctl, generated, state, settings)
         demo.unload(h["unload"])
     return demo
+
+
+def _wire_edit(h: dict, ed, state, settings: Settings) -> None:
+    """The Edit tab: controls follow the mode; an edit shows its video and maps first, then its
+    remaining downloads (the edited motion's own MP4, attention NPZ/PNG) are made."""
+    quick = dict(queue=False, show_progress="hidden", api_visibility="undocumented")
+    ed.mode.change(h["edit_mode"], [ed.mode, ed.mirror, ed.source, ed.target, ed.reweight_word],
+                   [ed.mode_help, ed.target, ed.tau, ed.mirror, ed.reweight_word], api_name="edit_mode",
+                   preprocess=False, **quick)
+    gr.on([ed.source.change, ed.target.change], h["edit_words"],
+          [ed.source, ed.mode, ed.target, ed.reweight_word], ed.reweight_word, api_name="edit_words",
+          preprocess=False, **quick)
+    ed.auto_length.input(h["length_mode"], ed.auto_length, ed.seconds, api_name="edit_length_mode", **quick)
+    edited = gr.on([ed.button.click], h["edit"], inputs=ed.inputs + [state],
+                   outputs=[state, ed.video, ed.summary, ed.word, ed.source_heatmap, ed.edited_heatmap, ed.downloads],
+                   api_name="edit", preprocess=False, concurrency_id="model", show_progress_on=[ed.video],
+                   concurrency_limit=settings.concurrency, trigger_mode="once")
+    edited.success(h["edit_files"], [state], ed.downloads, api_name="edit_files", preprocess=False,
+                   concurrency_id="views", show_progress="minimal")
+    ed.word.input(h["edit_attention"], [ed.word, state], [ed.source_heatmap, ed.edited_heatmap],
+                  api_name="edit_attention", preprocess=False, concurrency_id="views", trigger_mode="always_last")
+
+
+def _wire_control(h: dict, ctl, generated, state, settings: Settings) -> None:
+    """The Control tab: inputs follow the kind of targets, a preview of the targets follows
+    every change, and a run shows the guided motion with its targets and error."""
+    quick = dict(queue=False, show_progress="hidden", api_visibility="undocumented")
+    ctl.task.change(h["control_task"], ctl.task, [ctl.path_group, ctl.upload_group, ctl.upload_help, ctl.keyframes],
+                    api_name="control_task", **quick)
+    preview_inputs = [ctl.task, ctl.preset, ctl.seconds, ctl.speed, ctl.upload, ctl.example, ctl.keyframes, state]
+    gr.on([ctl.task.change, ctl.preset.change, ctl.seconds.release, ctl.speed.release, ctl.upload.change,
+           ctl.example.change, ctl.keyframes.submit, ctl.keyframes.blur],
+          h["control_preview"], preview_inputs, ctl.preview, api_name="control_preview", preprocess=False,
+          concurrency_id="views", show_progress="hidden", api_visibility="undocumented", trigger_mode="always_last")
+    # in-betweening and upper-body targets come from the last generated motion
+    generated.success(h["control_preview"], preview_inputs, ctl.preview, api_name="control_preview_refresh",
+                      preprocess=False, concurrency_id="views", show_progress="hidden", api_visibility="private")
+    gr.on([ctl.button.click], h["control"], inputs=ctl.inputs + [state],
+          outputs=[state, ctl.video, ctl.top_view, ctl.summary, ctl.downloads], api_name="control", preprocess=False,
+          concurrency_id="model", show_progress_on=[ctl.video], concurrency_limit=settings.concurrency,
+          trigger_mode="once")
 
 
 def build_error_page(message: str) -> gr.Blocks:
