@@ -204,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("target", nargs="?", default=None, help="target prompt (swap, refine)")
     e.add_argument("--mode", choices=("swap", "refine", "reweight", "mirror"), default="swap")
     e.add_argument("-o", "--output", required=True, help="output directory")
-    e.add_argument("--tau", type=float, default=None, help="share of T led by the source maps (swap: 0.8)")
+    e.add_argument("--tau", type=float, default=None, help="source maps lead while t >= tau*T (swap default 0.8 = the first 20%% of the steps; refine 0 = all)")
     e.add_argument("--reweight", action="append", metavar="WORD=SCALE", help="scale a word's attention (-3..3)")
     e.add_argument("--mirror", choices=("lower", "upper", "all"), default=None)
     e.add_argument("--self-inject", type=float, default=0.2, help="share of steps with source self-attention")
