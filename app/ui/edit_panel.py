@@ -79,8 +79,8 @@ def build_edit_panel(max_seconds: float) -> EditPanel:
                                 max_length=MAX_PROMPT_CHARS, value=EXAMPLE_EDITS[0][2],
                                 elem_id="edit-target")
             tau = gr.Slider(0.0, 1.0, value=DEFAULT_TAU["swap"], step=0.05, elem_id="edit-tau",
-                            label="τ: share of the steps during which the source's attention leads",
-                            info="higher keeps more of the source motion")
+                            label="τ: the source's attention leads while the timestep t ≥ τ·T",
+                            info="0.8: the first 20% of the steps follow the source; 0: all of them")
             with gr.Row():
                 first_words = [("none", "")] + [(w, w) for w in dict.fromkeys(split_words(EXAMPLE_EDITS[0][2]))]
                 reweight_word = gr.Dropdown(first_words, value="", label="Word to re-weight", scale=1, min_width=140,
