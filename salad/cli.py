@@ -20,11 +20,26 @@ def _env_defaults() -> None:
         os.environ.setdefault(k, v)
 
 
+def _split_fractions(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected TRAIN,VAL,TEST fractions such as 0.8,0.05,0.15, got {text!r}")
+
+
 def cmd_data_build(a) -> int:
-    from .data.build import build_bandai
-    if a.source != "bandai":
-        raise SystemExit(f"unknown source {a.source!r}; supported: bandai")
-    report = build_bandai(a.input, a.out, workers=a.workers, seed=a.seed)
+    if a.source == "bandai":
+        from .data.build import build_bandai
+        bvh_only = [f"--{k.replace('_', '-')}" for k in ("mapping", "mirror", "split", "captions", "allow_uncaptioned")
+                    if getattr(a, k) not in (None, False)]
+        if bvh_only:
+            raise SystemExit(f"{', '.join(bvh_only)}: only for --source bvh")
+        report = build_bandai(a.input, a.out, workers=a.workers, seed=a.seed)
+    else:
+        from .data.build_bvh import build_bvh
+        report = build_bvh(a.input, a.out, mapping=a.mapping or "auto", mirror=a.mirror is not False,
+                           workers=a.workers, seed=a.seed, split=a.split or (0.8, 0.05, 0.15),
+                           captions=a.captions, allow_uncaptioned=a.allow_uncaptioned)
     print(json.dumps({k: v for k, v in report.items() if k != "skipped"}, indent=2))
     for name, why in report["skipped"].items():
         print(f"skipped {name}: {why}")
@@ -173,12 +188,30 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     data = sub.add_parser("data", help="build and inspect datasets").add_subparsers(dest="data_cmd", required=True)
-    b = data.add_parser("build", help="build a HumanML3D-format dataset from labelled mocap")
-    b.add_argument("--source", default="bandai", help="dataset kind (bandai)")
-    b.add_argument("--input", required=True, help="the archive (.tar.xz) or its unpacked folder")
+    b = data.add_parser(
+        "build", help="build a HumanML3D-format dataset from labelled mocap",
+        description="--source bandai: the Bandai-Namco research motion archive, captions made from its labels. "
+                    "--source bvh: every *.bvh under a folder; a clip's captions come from <clip>.txt next to it "
+                    "(one per line) or from captions.json at the folder's root ({\"path/clip.bvh\": [\"a person "
+                    "...\"]}); a caption is plain text or a HumanML3D line caption#tokens#start#end.")
+    b.add_argument("--source", choices=("bandai", "bvh"), default="bandai", help="dataset kind (default: bandai)")
+    b.add_argument("--input", required=True,
+                   help="bandai: the archive (.tar.xz) or its unpacked folder; bvh: a folder of .bvh files")
     b.add_argument("--out", required=True, help="output directory")
     b.add_argument("--workers", type=int, default=2)
-    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--seed", type=int, default=0, help="random seed of the train/val/test split")
+    b.add_argument("--mapping", default=None,
+                   help="bvh: joint names: auto (default: detect), bandai, salad, smpl, mixamo, or FILE.json "
+                        "{\"pelvis\": \"Hips\", ...} naming the source joint of each of the 22 joints")
+    b.add_argument("--mirror", action=argparse.BooleanOptionalAction, default=None,
+                   help="bvh: also store mirrored copies (M<id>) with left/right swapped in the captions "
+                        "(default: on)")
+    b.add_argument("--split", type=_split_fractions, default=None, metavar="TRAIN,VAL,TEST",
+                   help="bvh: split fractions (default: 0.8,0.05,0.15)")
+    b.add_argument("--captions", default=None,
+                   help="bvh: captions JSON keyed by path relative to --input (default: captions.json in --input)")
+    b.add_argument("--allow-uncaptioned", action="store_true",
+                   help="bvh: keep clips without captions (for VAE training) instead of skipping them")
     b.set_defaults(func=cmd_data_build)
     s = data.add_parser("stats", help="counts per content, style and split, and lengths")
     s.add_argument("dir")

@@ -11,7 +11,11 @@ Every clip is retargeted onto one skeleton (the median bone lengths of the whole
 set), canonicalised and converted to features; its mirror image is stored as
 M<id> with left/right swapped in its labels and captions. The build happens in a
 hidden sibling directory that is renamed into place at the end, so a crash never
-leaves a half-written dataset; a rerun resumes from the clips already converted.
+leaves a half-written dataset; a rerun with the same sources resumes from the clips
+already converted.
+
+The steps every builder shares (start_build, convert_clips, finish_build) live here;
+salad.data.build_bvh uses them for a folder of the user's own captioned BVH files.
 """
 from __future__ import annotations
 
@@ -130,43 +134,193 @@ def assign_splits(clips: list[Clip], seed: int = 0) -> dict[str, str]:
     return {name: SPLIT_NAMES[SPLIT_PATTERN[i % len(SPLIT_PATTERN)]] for i, name in enumerate(order)}
 
 
-# ---------------------------------------------------------------- conversion
+# ---------------------------------------------------------------- the shared pipeline
+#
+# Every builder goes: find clips -> start_build -> convert_clips -> captions and splits of
+# its own -> finish_build. Only the discovery, the captions and the split rule differ.
 
-def _load_worker(clip: Clip):
+SETTINGS_FILE = ".settings.json"   # what the hidden build was started with; resumed only if it matches
+IMPORTS_FILE = ".imports.json"     # clip -> joint mapping that imported it, kept across resumed runs
+
+
+def check_output(source: Path, out: Path) -> None:
+    """Refuse outputs that the final swap would destroy: the input itself, a folder holding
+    the input, or an existing folder that is not an earlier build."""
+    src, dst = source.resolve(), out.resolve()
+    if src == dst or dst in src.parents:
+        raise BuildError(f"{out}: the output would replace the input {source}; choose another folder")
+    if dst.is_file() or (dst.is_dir() and any(dst.iterdir()) and not (dst / "build_report.json").is_file()):
+        raise BuildError(f"{out}: exists and is not an earlier build (no build_report.json); "
+                         f"it would be replaced, so choose a new or empty folder")
+
+
+def start_build(out: Path, settings: dict) -> Path:
+    """The hidden work directory `.<out>.building` next to `out`. A leftover from an
+    interrupted build with the same settings is resumed; any other leftover is cleared."""
+    settings = json.loads(json.dumps(settings))  # tuples become lists, as they will read back
+    work = out.parent / f".{out.name}.building"
+    stamp = work / SETTINGS_FILE
+    if work.exists():
+        try:
+            same = json.loads(stamp.read_text()) == settings
+        except (OSError, ValueError):
+            same = False
+        if not same:
+            shutil.rmtree(work)
+    for sub in ("new_joint_vecs", "new_joints", "texts"):
+        (work / sub).mkdir(parents=True, exist_ok=True)
+    atomic_write_text(stamp, json.dumps(settings))
+    return work
+
+
+def source_fingerprint(sources: dict[str, Path]) -> list:
+    """Name, size and modification time of every source file: any change restarts a resumed build,
+    because the shared skeleton is the median over all clips."""
+    return [[name, st.st_size, st.st_mtime_ns] for name, st in
+            ((name, path.stat()) for name, path in sorted(sources.items()))]
+
+
+@dataclass
+class Conversion:
+    built: list[str]              # clips whose features are on disk, in input order
+    skipped: dict[str, str]       # clip -> why not
+    resumed: int                  # clips already converted by an interrupted run
+    mappings: dict[str, str]      # clip -> joint mapping that imported it
+
+
+def _load_worker(job):
     import torch
     torch.set_num_threads(1)
+    name, path, mapping = job
     try:
-        joints = load_bvh(clip.path, mapping="bandai", fps=rep.FPS).joints
+        clip = load_bvh(path, mapping=mapping, fps=rep.FPS)
     except BvhError as e:
-        return clip.name, None, str(e)
+        return name, None, str(e), None
+    joints = clip.joints
     if len(joints) < MIN_FRAMES + 1:
-        return clip.name, None, f"{clip.path}: too short ({len(joints)} frames at 20 fps, need {MIN_FRAMES + 1})"
+        return name, None, f"{path}: too short ({len(joints)} frames at 20 fps, need {MIN_FRAMES + 1})", None
     if not np.isfinite(joints).all():
-        return clip.name, None, f"{clip.path}: non-finite joint positions"
-    return clip.name, joints, None
+        return name, None, f"{path}: non-finite joint positions", None
+    return name, joints, None, clip.mapping_name
 
 
-def _convert_worker(args):
+def _convert_worker(job):
     import torch
     torch.set_num_threads(1)
-    name, joints, lengths, out_dir = args
-    joints = rep.canonicalize(rep.retarget(joints.astype(np.float64), lengths))
-    for prefix, j in (("", joints), ("M", rep.mirror_joints(joints))):
-        feats = rep.joints_to_features(j).astype(np.float32)
-        recovered = rep.features_to_joints(feats).astype(np.float32)
+    name, joints, lengths, out_dir, mirror, path = job
+    try:
+        joints = rep.canonicalize(rep.retarget(joints.astype(np.float64), lengths))
+        versions = (("", joints), ("M", rep.mirror_joints(joints))) if mirror else (("", joints),)
+        results = []
+        for prefix, j in versions:
+            feats = rep.joints_to_features(j).astype(np.float32)
+            if not np.isfinite(feats).all():
+                return name, f"{path}: non-finite features (degenerate skeleton?)"
+            results.append((prefix, feats, rep.features_to_joints(feats).astype(np.float32)))
+    except (ValueError, RuntimeError) as e:
+        return name, f"{path}: conversion failed ({e})"
+    # The features file of the last version is written last: its presence marks the clip done.
+    for prefix, feats, recovered in results:
         _atomic_save_npy(out_dir / "new_joints" / f"{prefix}{name}.npy", recovered)
         _atomic_save_npy(out_dir / "new_joint_vecs" / f"{prefix}{name}.npy", feats)
-    return name
+    return name, None
 
+
+def convert_clips(sources: dict[str, Path], work: Path, mapping="auto", mirror: bool = True,
+                  workers: int = 2, progress: bool = True) -> Conversion:
+    """Import BVH clips {name: path}, retarget them onto one skeleton (the median bone lengths of the
+    set, saved as skeleton.json), canonicalise and write features, joints and optional mirrors (M<name>)."""
+    def done(name: str) -> bool:
+        return (work / "new_joint_vecs" / f"{'M' if mirror else ''}{name}.npy").exists()
+
+    todo = [n for n in sources if not done(n)]
+    skipped: dict[str, str] = {}
+    loaded: dict[str, np.ndarray] = {}
+    imports_path = work / IMPORTS_FILE
+    mappings = json.loads(imports_path.read_text()) if imports_path.exists() else {}
+    # Pass 1: import every clip still needed (all of them while the bone lengths are unknown).
+    need_lengths = not (work / "skeleton.json").exists()
+    to_load = list(sources) if need_lengths else todo
+    jobs = [(n, sources[n], mapping) for n in to_load]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        for name, joints, err, used in tqdm(pool.map(_load_worker, jobs, chunksize=8), total=len(jobs),
+                                            desc="import BVH", disable=not progress):
+            if err:
+                skipped[name] = err
+                if progress:
+                    tqdm.write(f"skipped: {err}")
+            else:
+                loaded[name] = joints
+                mappings[name] = used
+    atomic_write_text(imports_path, json.dumps(mappings))
+    if need_lengths:
+        if not loaded:
+            return Conversion([], skipped, 0, {})
+        lengths = np.median(np.stack([rep.bone_lengths(j) for j in loaded.values()]), axis=0)
+        atomic_write_text(work / "skeleton.json", json.dumps(
+            {"joint_names": list(rep.sk.JOINT_NAMES), "parents": rep.sk.PARENTS.tolist(),
+             "bone_lengths_m": [round(float(x), 5) for x in lengths]}, indent=2))
+    lengths = np.array(json.loads((work / "skeleton.json").read_text())["bone_lengths_m"])
+
+    # Pass 2: retarget, canonicalise, features, mirrors.
+    jobs = [(n, loaded[n], lengths, work, mirror, sources[n]) for n in todo if n in loaded]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        for name, err in tqdm(pool.map(_convert_worker, jobs, chunksize=4), total=len(jobs), desc="features",
+                              disable=not progress):
+            if err:
+                skipped[name] = err
+                if progress:
+                    tqdm.write(f"skipped: {err}")
+    for n in sources:  # clips that failed in an earlier run are known by their missing output
+        if n not in skipped and not done(n):
+            skipped[n] = f"{sources[n]}: conversion failed"
+    built = [n for n in sources if n not in skipped]
+    return Conversion(built, skipped, len(sources) - len(todo), {n: mappings.get(n, "") for n in built})
+
+
+def finish_build(work: Path, out: Path, texts: dict[str, list[str]], splits: dict[str, str], report: dict,
+                 extra_json: dict[str, dict] | None = None) -> dict:
+    """Write captions (texts/<id>.txt, lines in HumanML3D's format), split lists, train
+    statistics, extra JSON files and build_report.json, then swap the build into place."""
+    for name, lines in texts.items():
+        atomic_write_text(work / "texts" / f"{name}.txt", "".join(line + "\n" for line in lines))
+    for split in ("train", "val", "test"):
+        ids = sorted(n for n, s in splits.items() if s == split)
+        atomic_write_text(work / f"{split}.txt", "\n".join(ids) + "\n")
+    train = sorted(n for n, s in splits.items() if s == "train")
+    if not train:
+        raise BuildError(f"{out}: no motion landed in the training split")
+    mean, std = rep.feature_statistics(np.concatenate([np.load(work / "new_joint_vecs" / f"{n}.npy") for n in train]))
+    _atomic_save_npy(work / "Mean.npy", mean)
+    _atomic_save_npy(work / "Std.npy", std)
+    for file_name, doc in (extra_json or {}).items():
+        atomic_write_text(work / file_name, json.dumps(doc, indent=1, sort_keys=True))
+    atomic_write_text(work / "build_report.json", json.dumps(report, indent=2))
+    for f in (SETTINGS_FILE, IMPORTS_FILE):
+        (work / f).unlink(missing_ok=True)
+
+    # Swap the finished build into place.
+    if out.exists():
+        old = out.parent / f".{out.name}.old"
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(out, old)
+        os.replace(work, out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(work, out)
+    return report
+
+
+# ---------------------------------------------------------------- Bandai
 
 def build_bandai(source: str | Path, out: str | Path, workers: int = 2, seed: int = 0,
                  progress: bool = True) -> dict:
+    """Build the dataset from the Bandai-Namco archive (.tar.xz) or its unpacked folder."""
     source, out = Path(source), Path(out)
     if not source.exists():
         raise BuildError(f"{source}: no such file or directory")
-    work = out.parent / f".{out.name}.building"
-    for sub in ("new_joint_vecs", "new_joints", "texts"):
-        (work / sub).mkdir(parents=True, exist_ok=True)
+    check_output(source, out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.unpack-") as unpack:
         root = source
         if source.is_file():
@@ -179,75 +333,32 @@ def build_bandai(source: str | Path, out: str | Path, workers: int = 2, seed: in
         clips = discover_bandai(root)
         if not clips:
             raise BuildError(f"{source}: no Bandai-Namco-Research-Motiondataset-*/data/*.bvh clips found")
+        sources = {c.name: c.path for c in clips}
+        work = start_build(out, {"builder": "bandai", "clips": source_fingerprint(sources)})
+        conv = convert_clips(sources, work, mapping="bandai", mirror=True, workers=workers, progress=progress)
 
-        skipped: dict[str, str] = {}
-        loaded: dict[str, np.ndarray] = {}
-        todo = [c for c in clips if not (work / "new_joint_vecs" / f"M{c.name}.npy").exists()]
-        done_before = len(clips) - len(todo)
-        # Pass 1: import every clip we still need (all of them when computing bone lengths).
-        need_lengths = not (work / "skeleton.json").exists()
-        to_load = clips if need_lengths else todo
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            for name, joints, err in tqdm(pool.map(_load_worker, to_load, chunksize=8), total=len(to_load),
-                                          desc="import BVH", disable=not progress):
-                if err:
-                    skipped[name] = err
-                    tqdm.write(f"skipped: {err}")
-                else:
-                    loaded[name] = joints
-        if need_lengths:
-            lengths = np.median(np.stack([rep.bone_lengths(j) for j in loaded.values()]), axis=0)
-            atomic_write_text(work / "skeleton.json", json.dumps(
-                {"joint_names": list(rep.sk.JOINT_NAMES), "parents": rep.sk.PARENTS.tolist(),
-                 "bone_lengths_m": [round(float(x), 5) for x in lengths]}, indent=2))
-        lengths = np.array(json.loads((work / "skeleton.json").read_text())["bone_lengths_m"])
-
-        # Pass 2: retarget, canonicalise, features, mirrors.
-        jobs = [(c.name, loaded[c.name], lengths, work) for c in todo if c.name in loaded]
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            for _ in tqdm(pool.map(_convert_worker, jobs, chunksize=4), total=len(jobs), desc="features",
-                          disable=not progress):
-                pass
-        for c in clips:  # clips that failed in an earlier run are known by their missing output
-            if c.name not in skipped and not (work / "new_joint_vecs" / f"M{c.name}.npy").exists():
-                skipped[c.name] = f"{c.path}: conversion failed"
-
-    good = [c for c in clips if c.name not in skipped]
+    good = [c for c in clips if c.name not in conv.skipped]
+    if not good:
+        shutil.rmtree(work, ignore_errors=True)  # nothing worth resuming
+        raise BuildError(f"{source}: no clip could be imported; first problems: "
+                         + "; ".join(list(conv.skipped.values())[:3]))
     splits = assign_splits(good, seed)
-    labels = {}
+    labels, texts = {}, {}
     for c in good:
         for prefix in ("", "M"):
             content = MIRRORED_CONTENT.get(c.content, c.content) if prefix else c.content
             caps = captions_for(content, c.style, f"{prefix}{c.name}", CAPTIONS_PER_CLIP)
             if prefix and content == c.content:
                 caps = [swap_left_right(x) for x in caps]
-            atomic_write_text(work / "texts" / f"{prefix}{c.name}.txt", "\n".join(caption_line(x) for x in caps) + "\n")
+            texts[f"{prefix}{c.name}"] = [caption_line(x) for x in caps]
             labels[f"{prefix}{c.name}"] = {"dataset": c.dataset, "content": content, "style": c.style,
                                            "mirrored": bool(prefix), "source": f"{c.path.parent.parent.name}/data/{c.path.name}",
                                            "split": splits[c.name]}
-    for split in ("train", "val", "test"):
-        ids = sorted(n for n, lab in labels.items() if lab["split"] == split)
-        atomic_write_text(work / f"{split}.txt", "\n".join(ids) + "\n")
-    train = [np.load(work / "new_joint_vecs" / f"{n}.npy") for n, lab in sorted(labels.items()) if lab["split"] == "train"]
-    mean, std = rep.feature_statistics(np.concatenate(train))
-    _atomic_save_npy(work / "Mean.npy", mean)
-    _atomic_save_npy(work / "Std.npy", std)
-    atomic_write_text(work / "labels.json", json.dumps(labels, indent=1, sort_keys=True))
     report = {"source": str(source), "clips_found": len(clips), "clips_built": len(good),
-              "clips_resumed": done_before, "motions_written": 2 * len(good),
-              "skipped": dict(sorted(skipped.items())), "fps": rep.FPS, "seed": seed}
-    atomic_write_text(work / "build_report.json", json.dumps(report, indent=2))
-
-    # Swap the finished build into place.
-    if out.exists():
-        old = out.parent / f".{out.name}.old"
-        shutil.rmtree(old, ignore_errors=True)
-        os.replace(out, old)
-        os.replace(work, out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(work, out)
-    return report
+              "clips_resumed": conv.resumed, "motions_written": 2 * len(good),
+              "skipped": dict(sorted(conv.skipped.items())), "fps": rep.FPS, "seed": seed}
+    return finish_build(work, out, texts, {n: lab["split"] for n, lab in labels.items()}, report,
+                        {"labels.json": labels})
 
 
 # ---------------------------------------------------------------- statistics
