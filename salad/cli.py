@@ -10,7 +10,7 @@ from pathlib import Path
 
 from .eval import EMBEDDED_EVALUATOR
 
-PLUGIN_COMMANDS = ("salad.eval.edit_bench",)
+PLUGIN_COMMANDS = ("salad.eval.edit_bench", "salad.eval.length_dist")
 
 
 def _env_defaults() -> None:
@@ -169,6 +169,9 @@ def cmd_train(a) -> int:
         cfg = load_toml(DenoiserTrainConfig, a.config)
         apply_overrides(cfg, a)
         task, ema = DenoiserTask(cfg), cfg.ema_decay
+    elif a.what == "vae-san":
+        from .training.vae_adv_task import train_vae_san
+        return train_vae_san(a)
     elif a.what == "classifier":
         from .eval.train_classifier import train_classifier
         return train_classifier(a)
@@ -276,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.set_defaults(func=cmd_eval)
 
     t = sub.add_parser("train", help="train the VAE, the denoiser, the evaluator or the classifier")
-    t.add_argument("what", choices=("vae", "denoiser", "evaluator", "classifier"))
+    t.add_argument("what", choices=("vae", "vae-san", "denoiser", "evaluator", "classifier"))
     t.add_argument("--config", required=True, help="TOML config file")
     t.add_argument("--out-dir", help="override run.out_dir")
     t.add_argument("--data", help="override data.root")

@@ -15,8 +15,13 @@ from .vae import MotionVAE, VAEConfig
 
 
 def save_vae(path: str | Path, vae: MotionVAE, normalizer: Normalizer, latent_scale: float,
-             meta: dict[str, Any] | None = None) -> Path:
+             meta: dict[str, Any] | None = None, latent_sources: list[str] | None = None) -> Path:
+    """latent_sources: checksums of the VAEs whose encoder (and so latent space) this one keeps,
+    oldest first (the one whose encoder was trained); a denoiser trained on any of them fits this VAE."""
     config = {"vae": to_dict(vae.config), "latent_scale": latent_scale, "feature_dim": normalizer.dim}
+    if latent_sources:
+        config["latent_source_sha256"] = latent_sources[0]
+        config["latent_lineage_sha256"] = list(latent_sources)
     parts = {"vae": vae.state_dict(),
              "stats": {"mean": torch.from_numpy(normalizer.mean), "std": torch.from_numpy(normalizer.std)}}
     return save_checkpoint(path, "vae", config, parts, meta)
@@ -57,3 +62,22 @@ def load_denoiser(path: str | Path) -> tuple[Denoiser, dict]:
 def vae_checksum(path: str | Path) -> str:
     """Identifies a VAE checkpoint by its weights file, so a denoiser can check its partner."""
     return read_checkpoint_config(path, kind="vae")["files"]["vae"]["sha256"]
+
+
+def vae_latent_sources(path: str | Path) -> list[str]:
+    """Checksums of the VAEs sharing `path`'s latent space, the oldest first, itself last."""
+    doc = read_checkpoint_config(path, kind="vae")
+    own = doc["files"]["vae"]["sha256"]
+    lineage = doc["config"].get("latent_lineage_sha256") or []
+    source = doc["config"].get("latent_source_sha256")
+    if not isinstance(lineage, list) or not all(isinstance(c, str) for c in lineage) or \
+            (source is not None and not isinstance(source, str)):
+        raise CheckpointError(f"{path}/config.json: latent_source_sha256 / latent_lineage_sha256 are malformed")
+    chain = ([source] if source else []) + lineage + [own]
+    return list(dict.fromkeys(chain))
+
+
+def vae_latent_checksums(path: str | Path) -> set[str]:
+    """The VAE checksums a denoiser may have recorded and still fit this VAE: its own, or that of
+    a VAE it was fine-tuned from with the encoder frozen."""
+    return set(vae_latent_sources(path))

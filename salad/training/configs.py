@@ -5,6 +5,7 @@ from dataclasses import dataclass, field
 
 from ..diffusion.schedule import DiffusionConfig
 from ..models.denoiser import DenoiserConfig
+from ..models.discriminator import DiscriminatorConfig
 from ..models.vae import VAEConfig
 
 
@@ -60,3 +61,16 @@ class DenoiserTrainConfig:
     text_dropout: float = 0.1     # probability of training on the empty prompt (for CFG)
     auto_length_prob: float = 0.5 # share of samples drawn on the full canvas with an activation tail
     ema_decay: float = 0.999
+
+
+@dataclass
+class VAESANTrainConfig:
+    """Adversarial fine-tuning of a trained VAE's decoder; its encoder and latent scale stay
+    frozen, so a denoiser trained on `vae`'s latents works with the result."""
+    vae: str = "assets/model/vae"     # the VAE whose latent space is kept (read only)
+    lambda_adv: float = 1e-3          # MoLA's weight of the adversarial term; 0 = plain fine-tuning
+    data: DataConfig = field(default_factory=DataConfig)
+    discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, warmup_steps=100, grad_clip=0.0))
+    run: RunConfig = field(default_factory=lambda: RunConfig(out_dir="runs/vae_san"))
+    window_overhang: float = 0.5

@@ -1,0 +1,129 @@
+"""Adversarial (SAN) fine-tuning of a trained VAE's decoder, keeping its latent space (MoLA §3.2).
+
+The encoder and the latent scale are frozen, so a denoiser trained on the source VAE's latents
+decodes through the fine-tuned decoder unchanged; the exported checkpoint records the source's
+checksum for load_pipeline's compatibility check. The decoder minimises the source VAE's own
+reconstruction loss plus lambda_adv times the SAN generator loss; the discriminator learns
+from the same batch. Both updates come from one backward pass through the shared Trainer
+(exact resume, bf16): the discriminator sees the reconstruction detached, and the decoder's
+adversarial term sees the discriminator's parameters detached, so each loss reaches only
+its own player.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn as nn
+from torch.func import functional_call
+
+from ..config import to_dict
+from ..data.dataset import MotionDataset, WindowSampler
+from ..models.discriminator import SANDiscriminator, san_discriminator_loss, san_generator_loss
+from ..models.io import load_vae, save_vae, vae_latent_sources
+from ..models.vae import MotionVAE
+from .configs import VAESANTrainConfig
+
+ENCODER_PARTS = ("joint_in", "enc22", "pool1", "enc12", "pool2", "to_dist")
+
+
+def encoder_modules(vae: MotionVAE) -> list[nn.Module]:
+    return [getattr(vae, name) for name in ENCODER_PARTS]
+
+
+def encoder_state(vae: MotionVAE) -> dict[str, torch.Tensor]:
+    """The encoder's weights (what defines the latent space), keyed as in vae.state_dict()."""
+    return {k: v for k, v in vae.state_dict().items() if k.split(".", 1)[0] in ENCODER_PARTS}
+
+
+class AdversarialVAETraining(nn.Module):
+    """forward(batch) -> (loss, logs) for the Trainer; encoder frozen and always in eval mode."""
+
+    def __init__(self, vae: MotionVAE, discriminator: SANDiscriminator, lambda_adv: float):
+        super().__init__()
+        if lambda_adv < 0:
+            raise ValueError(f"lambda_adv must be >= 0, got {lambda_adv}")
+        self.vae, self.disc, self.lambda_adv = vae, discriminator, float(lambda_adv)
+        for m in encoder_modules(vae):
+            m.requires_grad_(False)
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        # the denoiser's latents come from the encoder in eval mode (no dropout): train the
+        # decoder on exactly those
+        for m in encoder_modules(self.vae):
+            m.eval()
+        return self
+
+    def forward(self, batch: dict):
+        x, act = batch["features"], batch["activation"]
+        valid = act > 0.5
+        total, logs, recon, _ = self.vae.loss(x, act, valid=valid, eps=batch["eps"])
+        logs["rec_total"] = logs.pop("total")
+        if self.lambda_adv > 0:
+            mask = self.disc.patch_mask(valid)
+            frozen = {k: v.detach() for k, v in self.disc.named_parameters()}
+            g_adv = san_generator_loss(functional_call(self.disc, frozen, (recon, valid)), mask)
+            d_loss, d_logs = san_discriminator_loss(self.disc.san_logits(x, valid),
+                                                    self.disc.san_logits(recon.detach(), valid), mask)
+            total = total + self.lambda_adv * g_adv + d_loss
+            logs.update(d_logs, g_adv=float(g_adv.detach()), d_loss=float(d_loss.detach()))
+        logs["loss"] = logs["rec_total"] + self.lambda_adv * logs.get("g_adv", 0.0)
+        return total, logs
+
+
+class VAESANTask:
+    kind = "vae-san"
+
+    def __init__(self, cfg: VAESANTrainConfig, dataset: MotionDataset | None = None):
+        self.cfg = cfg
+        vae, self.normalizer, self.latent_scale, _ = load_vae(cfg.vae)
+        self.sources = vae_latent_sources(cfg.vae)
+        # the source VAE's statistics define its latent space, whatever the data directory holds
+        self.dataset = dataset or MotionDataset(cfg.data.root, "train", min_frames=cfg.data.min_frames,
+                                                max_frames=10 ** 9, normalizer=self.normalizer)
+        if self.dataset.dim != self.normalizer.dim:
+            raise ValueError(f"{cfg.data.root}: {self.dataset.dim}-d features, but the VAE {cfg.vae} "
+                             f"expects {self.normalizer.dim}")
+        if cfg.discriminator.feature_dim != self.normalizer.dim:
+            raise ValueError(f"discriminator.feature_dim is {cfg.discriminator.feature_dim}, "
+                             f"the data has {self.normalizer.dim} dims")
+        self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang)
+        torch.manual_seed(cfg.run.seed)
+        self.model = AdversarialVAETraining(vae, SANDiscriminator(cfg.discriminator), cfg.lambda_adv)
+
+    def batch(self, rng: np.random.Generator) -> dict:
+        b = self.sampler.batch(self.cfg.optim.batch_size, rng)
+        B, T = b["activation"].shape
+        g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+        b["eps"] = torch.randn(B, T // 4, 7, self.model.vae.config.latent_dim, generator=g)
+        return b
+
+    def loss(self, model: nn.Module, batch: dict):
+        return model(batch)
+
+    def config_dict(self) -> dict:
+        # the source's checksum is part of the run's identity: resuming against a different
+        # VAE at the same path must fail
+        return {**to_dict(self.cfg), "source_vae_sha256": self.sources[-1]}
+
+    def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
+        save_vae(path, model.vae, self.normalizer, latent_scale=self.latent_scale,
+                 meta={**meta, "train_config": to_dict(self.cfg)}, latent_sources=self.sources)
+
+
+def train_vae_san(a) -> int:
+    """`salad train vae-san --config configs/vae_san.toml [--init-from VAE_DIR]`: --init-from
+    names the VAE to fine-tune (overrides the config's `vae`)."""
+    from ..config import apply_overrides, load_toml
+    from .loop import Trainer
+
+    cfg = load_toml(VAESANTrainConfig, a.config)
+    apply_overrides(cfg, a)
+    if getattr(a, "init_from", None):
+        cfg.vae = a.init_from
+    out = Trainer(VAESANTask(cfg), cfg.optim, cfg.run).fit()
+    print(f"model written to {out}")
+    return 0

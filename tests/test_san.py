@@ -1,0 +1,150 @@
+import json
+import os
+import shutil
+
+import pytest
+import torch
+
+from salad.checkpoint import CheckpointError
+from salad.models.discriminator import (DiscriminatorConfig, SANDiscriminator, san_discriminator_loss,
+                                        san_generator_loss)
+from salad.models.io import load_vae, save_vae, vae_checksum, vae_latent_checksums, vae_latent_sources
+from salad.pipeline import load_pipeline
+from salad.training.configs import DataConfig, OptimConfig, RunConfig, VAESANTrainConfig
+from salad.training.loop import Trainer
+from salad.training.vae_adv_task import VAESANTask, encoder_state
+
+SMALL = DiscriminatorConfig(width=16, levels=2, blocks_per_level=1)
+
+
+def test_direction_is_unit_norm_and_the_two_terms_update_orthogonal_parts():
+    torch.manual_seed(0)
+    d = SANDiscriminator(SMALL)
+    with torch.no_grad():
+        d.weight.mul_(7.0)
+    assert torch.allclose(d.direction().norm(), torch.tensor(1.0))
+    x = torch.randn(3, 16, 263)
+    # the generator's logits are the inner product with the unit direction, times |w|
+    h = d.features(x.transpose(1, 2))
+    assert torch.allclose(d(x), torch.einsum("bct,c->bt", h, d.weight), atol=1e-5)
+
+    out = d.san_logits(x)
+    g_hinge, = torch.autograd.grad(out.hinge.sum(), d.weight, retain_graph=True)
+    g_dir, = torch.autograd.grad(out.direction.sum(), d.weight)
+    w = d.weight.detach()
+    cos = lambda a, b: float(torch.dot(a, b) / (a.norm() * b.norm()))
+    assert abs(cos(g_hinge, w)) > 0.999          # hinge: only the scale |w| (radial)
+    assert abs(cos(g_dir, w)) < 1e-4             # Wasserstein: only the direction (tangential)
+    # the feature map learns from the hinge term alone
+    conv = d.features[0].weight
+    assert torch.autograd.grad(d.san_logits(x).direction.sum(), conv, allow_unused=True)[0] is None
+    assert torch.autograd.grad(d.san_logits(x).hinge.sum(), conv)[0].abs().sum() > 0
+
+
+def test_discriminator_separates_a_toy_problem_and_the_generator_gradient_points_to_real():
+    torch.manual_seed(0)
+    d = SANDiscriminator(SMALL)
+    opt = torch.optim.Adam(d.parameters(), lr=2e-3, betas=(0.5, 0.9))
+    shift = torch.zeros(263)
+    shift[:20] = 1.0
+    real_batch = lambda: torch.randn(16, 16, 263) * 0.5 + shift
+    fake_batch = lambda: torch.randn(16, 16, 263) * 0.5 - shift
+    for _ in range(25):
+        loss, logs = san_discriminator_loss(d.san_logits(real_batch()), d.san_logits(fake_batch()))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        r, f = d(real_batch()), d(fake_batch())
+    assert r.mean() > 0.5 and f.mean() < -0.5 and logs["d_gap"] > 1.0
+    fake = fake_batch().requires_grad_(True)
+    grad, = torch.autograd.grad(san_generator_loss(d(fake)), fake)
+    step = -grad.mean(dim=(0, 1))
+    assert torch.dot(step, shift) > 0            # descending the generator loss moves fakes towards real
+
+
+def test_padding_patches_are_masked_out():
+    d = SANDiscriminator(SMALL)
+    valid = torch.zeros(2, 16, dtype=torch.bool)
+    valid[0, :9] = True
+    valid[1, :] = True
+    assert d.patch_mask(valid).tolist() == [[True, True, True, False], [True] * 4]
+    x = torch.randn(2, 16, 263)
+    y = x.clone()
+    y[0, 9:] = 100.0                               # garbage after the end must not matter
+    assert torch.equal(d(x, valid), d(y, valid))
+    with pytest.raises(ValueError, match="divisible by 4"):
+        d(torch.randn(1, 10, 263))
+
+
+def _san_cfg(tiny_dataset, source, out, steps=2, lam=1e-3):
+    return VAESANTrainConfig(
+        vae=str(source), lambda_adv=lam, data=DataConfig(root=str(tiny_dataset), window=16),
+        discriminator=SMALL, optim=OptimConfig(lr=1e-3, warmup_steps=1, batch_size=4, max_steps=steps, grad_clip=0.0),
+        run=RunConfig(out_dir=str(out), bf16=True, checkpoint_every=2, log_every=1))
+
+
+def test_fine_tuning_keeps_the_encoder_bit_identical_and_the_denoiser_compatible(tiny_model, tiny_dataset, tmp_path):
+    source = tiny_model / "vae"
+    before, _, scale, _ = load_vae(source)
+    task = VAESANTask(_san_cfg(tiny_dataset, source, tmp_path / "run"))
+    disc0 = {k: v.clone() for k, v in task.model.disc.state_dict().items()}
+    trainer = Trainer(task, task.cfg.optim, task.cfg.run)
+    out = trainer.fit()
+    after, _, new_scale, doc = load_vae(out)
+    enc0, enc1 = encoder_state(before), encoder_state(after)
+    assert enc0 and all(torch.equal(enc0[k], enc1[k]) for k in enc0)
+    changed = [k for k, v in after.state_dict().items() if k not in enc0 and not torch.equal(v, before.state_dict()[k])]
+    assert changed, "the decoder did not train"
+    assert any(not torch.equal(v, disc0[k]) for k, v in task.model.disc.state_dict().items())
+    assert new_scale == scale
+    log = [json.loads(l) for l in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert {"g_adv", "d_loss", "d_gap", "rec"} <= set(log[-1])
+
+    src_sum = vae_checksum(source)
+    assert doc["config"]["latent_source_sha256"] == src_sum
+    assert vae_latent_sources(out) == [src_sum, vae_checksum(out)]
+    model = tmp_path / "model"
+    model.mkdir()
+    os.symlink(out, model / "vae")
+    os.symlink((tiny_model / "denoiser").resolve(), model / "denoiser")
+    assert load_pipeline(model).vae is not None            # the denoiser recorded the source's checksum
+
+    # resuming continues the same run; a later fine-tune of the fine-tune keeps the lineage
+    resumed = Trainer(VAESANTask(_san_cfg(tiny_dataset, source, tmp_path / "run", steps=3)), task.cfg.optim, task.cfg.run)
+    assert resumed.try_resume() and resumed.step_count == 2
+    second = Trainer(VAESANTask(_san_cfg(tiny_dataset, out, tmp_path / "run2", steps=2)), task.cfg.optim,
+                     RunConfig(out_dir=str(tmp_path / "run2"), bf16=False, checkpoint_every=2)).fit()
+    assert vae_latent_checksums(second) == {src_sum, vae_checksum(out), vae_checksum(second)}
+
+
+def test_a_vae_with_another_latent_space_is_refused(tiny_model, tmp_path):
+    vae, norm, scale, _ = load_vae(tiny_model / "vae")
+    with torch.no_grad():
+        vae.to_dist.weight.add_(0.01)
+    model = tmp_path / "model"
+    save_vae(model / "vae", vae, norm, scale)
+    shutil.copytree((tiny_model / "denoiser").resolve(), model / "denoiser")
+    with pytest.raises(CheckpointError, match="different VAE"):
+        load_pipeline(model)
+    # a forged lineage entry that is not a string is a clear error, not a silent pass
+    cfg_file = model / "vae" / "config.json"
+    doc = json.loads(cfg_file.read_text())
+    doc["config"]["latent_lineage_sha256"] = [123]
+    cfg_file.write_text(json.dumps(doc))
+    with pytest.raises(CheckpointError, match="malformed"):
+        vae_latent_checksums(model / "vae")
+
+
+def test_lambda_zero_trains_no_discriminator(tiny_model, tiny_dataset, tmp_path):
+    task = VAESANTask(_san_cfg(tiny_dataset, tiny_model / "vae", tmp_path / "ctl", steps=1, lam=0.0))
+    disc0 = {k: v.clone() for k, v in task.model.disc.state_dict().items()}
+    trainer = Trainer(task, task.cfg.optim, task.cfg.run)
+    logs = trainer.step(task.batch(trainer.rng))
+    assert "g_adv" not in logs and logs["loss"] == pytest.approx(logs["rec_total"])
+    # latents are encoded as the denoiser sees them (no encoder dropout); the decoder trains as usual
+    assert not task.model.vae.enc22.training and not task.model.vae.to_dist.training
+    assert task.model.vae.dec22.training
+    assert all(torch.equal(v, disc0[k]) for k, v in task.model.disc.state_dict().items())
+    with pytest.raises(ValueError, match="lambda_adv"):
+        VAESANTask(_san_cfg(tiny_dataset, tiny_model / "vae", tmp_path / "bad", lam=-1.0))
