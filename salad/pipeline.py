@@ -20,7 +20,7 @@ from .diffusion.sampling import sample
 from .diffusion.schedule import SAMPLERS, DiffusionConfig, NoiseSchedule
 from .config import from_dict
 from .models.denoiser import Denoiser
-from .models.io import load_denoiser, load_vae, vae_checksum
+from .models.io import load_denoiser, load_vae, vae_latent_checksums
 from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
 from .motion.motion import Motion
@@ -184,16 +184,27 @@ class Pipeline:
 
     # ------------------------------------------------------------ guided control
     def control(self, prompt: str, targets=None, mask=None, seed: int = 0, strength: float = 1.0, steps: int = 50,
-                cfg: float = 7.5, repeats=None, signal=None, progress: Progress | None = None) -> Motion:
+                cfg: float = 7.5, repeats=None, signal=None, progress: Progress | None = None, edit: dict | None = None,
+                gradient_steps: int | None = None, refine_steps: int | None = None) -> Motion | EditResult:
         """Text -> motion that also meets joint position targets (MoLA's training-free guidance).
 
         targets (T, 22, 3) metres and mask (T, 22) or (T, 22, 3) bool, or a ready
         `signal` (salad.motion.control). The motion has T frames (rounded down to a
         multiple of 4). strength scales the guidance step; repeats is the number of
-        time-travel repeats per step (an int, or a function of (step, steps)).
+        time-travel repeats per step (an int, or a function of (step, steps));
+        gradient_steps the guidance steps per network evaluation and refine_steps those
+        on the final latent (defaults in salad.diffusion.guidance).
+
+        edit runs an attention edit during guided sampling, with Pipeline.edit's arguments
+        as keys (target = its target_prompt): {"mode": "mirror", "mirror": "upper"} or
+        {"target": "a person runs forward", "mode": "swap", "tau": 0.8}. The source and the
+        edited branch start from the same noise, run in one batch and both follow the
+        targets; an EditResult with both motions is returned instead of a Motion.
         """
-        from .diffusion.guidance import default_repeats, guided_sample
-        from .motion.control import make_signal
+        from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, default_repeats, guided_sample,
+                                         position_loss)
+        from .editing.build import step_follower
+        from .motion.control import control_errors, make_signal
 
         prompt = self.check_prompt(prompt)
         sig = signal if signal is not None else make_signal(targets, mask)
@@ -203,28 +214,66 @@ class Pipeline:
         if not isinstance(strength, (int, float)) or not math.isfinite(strength) or not 0 <= strength <= 100:
             raise ValueError(f"strength must be a number in 0..100, got {strength!r}")
         steps, cfg, _, _ = self.check_sampling(steps, cfg, "ddim")
-        tgt = torch.from_numpy(sig.targets[:frames]).float()
-        msk = torch.from_numpy(sig.mask[:frames]).float()
-        count = msk.sum().clamp_min(1.0)
+        if not sig.mask[:frames].any():
+            raise ValueError(f"the control signal constrains nothing in its first {frames} frames")
+        if edit is None:
+            text, plan, prompts = self.encode_text(["", prompt]), None, [prompt]
+        else:
+            text, plan, prompts = self._control_edit(prompt, edit, steps, frames)
 
-        def loss(z0: torch.Tensor) -> torch.Tensor:
+        def joints_of(z0: torch.Tensor) -> torch.Tensor:
             feats, _ = self.vae.decode(z0 / self.latent_scale)
-            joints = features_to_joints(self.normalizer.denormalize(feats))
-            # mean squared error per constrained coordinate, times a fixed scale so that
-            # `strength` means the same for a 4-keyframe and a 900-joint-frame signal
-            return 100.0 * (((joints[0] - tgt) * msk) ** 2).sum() / count
+            return features_to_joints(self.normalizer.denormalize(feats))
 
-        text = self.encode_text(["", prompt])
+        loss = position_loss(joints_of, torch.from_numpy(sig.targets[:frames]), torch.from_numpy(sig.mask[:frames]))
         g = torch.Generator().manual_seed(int(seed) + 1)
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
-        z = guided_sample(self.model_fn(text, auto=False), self.noise(1, frames, seed), self.schedule, loss,
-                          steps=steps, cfg_scale=cfg, strength=strength,
-                          repeats=default_repeats if repeats is None else repeats, generator=g, on_step=on_step)
-        m = self.decode(z, frames, [prompt], seed)[0]
-        err = np.linalg.norm((m.joints - sig.targets[:frames]) * sig.mask[:frames], axis=-1)
-        jm = sig.mask[:frames].any(-1)
-        m.info.update(control_mean_error_m=float(err[jm].mean()), control_max_error_m=float(err[jm].max()))
-        return m
+        noise = self.noise(1, frames, seed).repeat(len(prompts), 1, 1, 1)     # one z_T for both edit branches
+        if plan is not None:
+            self.denoiser.set_controller(plan.controller)
+        try:
+            z = guided_sample(self.model_fn(text, auto=False), noise, self.schedule, loss, steps=steps, cfg_scale=cfg,
+                              strength=strength, repeats=default_repeats if repeats is None else repeats,
+                              gradient_steps=DEFAULT_GRADIENT_STEPS if gradient_steps is None else gradient_steps,
+                              refine_steps=DEFAULT_REFINE_STEPS if refine_steps is None else refine_steps,
+                              generator=g, shared_noise=plan is not None,
+                              before_model=None if plan is None else step_follower(plan.controller), on_step=on_step)
+        finally:
+            if plan is not None:
+                self.denoiser.set_controller(None)
+        motions = self.decode(z, frames, prompts, seed)
+        for m in motions:
+            err = control_errors(m.joints, sig)
+            m.info.update(control_mean_error_m=float(err.mean()), control_max_error_m=float(err.max()),
+                          control_strength=float(strength))
+        if plan is None:
+            return motions[0]
+        source, edited = motions
+        source.attention, edited.attention = plan.store.maps(0, source.frames), plan.store.maps(1, edited.frames)
+        params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler="ddim", strength=strength)
+        return EditResult(source, edited, source.attention, edited.attention, params)
+
+    def _control_edit(self, prompt: str, edit: dict, steps: int, frames: int):
+        """Encoded text, edit plan and the two branch prompts for Pipeline.control(edit=...)."""
+        from .editing.build import EDIT_KEYS, build_edit, edit_arguments
+
+        if not isinstance(edit, dict):
+            raise ValueError(f"edit must be a dict such as {{'mode': 'mirror', 'mirror': 'upper'}}, "
+                             f"got {type(edit).__name__}")
+        unknown = sorted(set(edit) - set(EDIT_KEYS))
+        if unknown:
+            raise ValueError(f"unknown edit option(s) {', '.join(map(repr, unknown))}; use {', '.join(EDIT_KEYS)}")
+        target = edit.get("target")
+        target = None if target is None else self.check_prompt(target)
+        mode = edit.get("mode") or ("swap" if target is not None else "mirror" if edit.get("mirror") else
+                                    "reweight" if edit.get("reweight") else None)
+        if mode is None:
+            raise ValueError("edit needs a mode, a target prompt, a mirror part or re-weighted words")
+        target, mirror = edit_arguments(mode, prompt, target, edit.get("reweight"), edit.get("mirror"))
+        text = self.encode_text(["", "", prompt, target])
+        plan = build_edit(text, steps, frames, mode, prompt, target, tau=edit.get("tau"), reweight=edit.get("reweight"),
+                          mirror=mirror, self_inject=edit.get("self_inject", 0.2))
+        return text, plan, [prompt, target]
 
     # ------------------------------------------------------------ editing
     def edit(self, source_prompt: str, target_prompt: str | None = None, mode: str = "swap", seed: int = 0,
@@ -233,9 +282,10 @@ class Pipeline:
              self_inject: float = 0.2, progress: Progress | None = None) -> EditResult:
         """Zero-shot edit by cross-attention modulation (SALAD Algorithm 1).
 
-        mode: "swap" (target_prompt replaces words; tau, default 0.8, is the share of T
-        during which the source's maps lead), "refine" (target_prompt adds words; tau
-        default 0), "reweight" (reweight={"word": s}, s in [-3, 3]) or "mirror" (mirror=
+        mode: "swap" (target_prompt replaces words; the source's maps lead while the
+        timestep t >= tau * T, so the default tau = 0.8 means the first 20% of the steps),
+        "refine" (target_prompt adds words; the aligned source maps are used while
+        t >= tau * T, default 0 = every step), "reweight" (reweight={"word": s}, s in [-3, 3]) or "mirror" (mirror=
         "lower" | "upper" | "all"). reweight and mirror also compose with swap/refine.
         Source and edited branches, with their CFG rows, run in one batched forward
         from the same noise. Returns both motions and both attention maps.
@@ -296,6 +346,14 @@ class Pipeline:
                   "self_inject": self_inject, "seed": seed, "steps": steps, "cfg": cfg, "sampler": sampler}
         return EditResult(source, edited, source.attention, edited.attention, params)
 
+    def edit_real(self, motion, source_prompt: str, target_prompt: str | None = None, mode: str = "swap",
+                  **params) -> EditResult:
+        """Edit a real motion (BVH path, (T,22,3) joints or (T,263) features) by text: VAE encoding,
+        inversion (negative-prompt by default), then the attention edit. `.source` is the
+        reconstruction. See salad.editing.real.edit_real for the parameters."""
+        from .editing.real import edit_real
+        return edit_real(self, motion, source_prompt, target_prompt, mode, **params)
+
 
 EDIT_MODES = ("swap", "refine", "reweight", "mirror")
 
@@ -332,7 +390,8 @@ def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text
     vae, norm, scale, _ = load_vae(root / "vae")
     denoiser, doc = load_denoiser(root / "denoiser")
     cfg = doc["config"]
-    if cfg.get("vae_checksum") and cfg["vae_checksum"] != vae_checksum(root / "vae"):
+    # a VAE whose decoder was fine-tuned on frozen latents (SAN) still fits the denoiser
+    if cfg.get("vae_checksum") and cfg["vae_checksum"] not in vae_latent_checksums(root / "vae"):
         raise CheckpointError(f"{root}: the denoiser was trained on a different VAE than {root / 'vae'}")
     encoder = load_text_encoder(text_encoder or cfg["text_encoder"])
     if encoder.dim != denoiser.config.text_dim:

@@ -1,10 +1,17 @@
+import argparse
+import math
+
 import numpy as np
 import pytest
 import torch
 
-from salad.diffusion.guidance import default_repeats, guided_sample, step_size
+from salad.diffusion.guidance import (default_repeats, descend, guided_sample, network_evaluations,
+                                      position_loss, step_size)
 from salad.diffusion.schedule import NoiseSchedule
-from salad.motion.control import keyframe_signal, lower_body_signal, make_signal, path_signal, read_mola_control
+from salad.motion.control import (PATH_PRESETS, control_errors, crop_signal, keyframe_signal, lower_body_signal,
+                                  make_signal, parse_points, path_signal, preset_path, preset_points, read_keyframes,
+                                  read_mola_control, read_motion_joints, read_targets)
+from salad.motion.representation import FPS
 
 
 def test_mola_files_convert_explicitly(shared_data):
@@ -18,6 +25,29 @@ def test_mola_files_convert_explicitly(shared_data):
     assert list(frames) == [0, 1, 2, 3, 96, 97, 98, 99] and se.joint_mask()[frames].all()
     lower = read_mola_control(d / "control_example_lowerbody_circle.npy")
     assert sorted(np.flatnonzero(lower.joint_mask().any(0))) == [0, 1, 2, 4, 5, 7, 8, 10, 11]
+
+
+def test_mola_file_errors_name_the_file(tmp_path):
+    empty = tmp_path / "empty.npy"
+    np.save(empty, np.zeros((20, 22, 3), np.float32))
+    with pytest.raises(ValueError, match=r"empty\.npy: the mask constrains nothing"):
+        read_mola_control(empty)
+    nan = tmp_path / "nan.npy"
+    a = np.zeros((20, 22, 3), np.float32)
+    a[:, 0] = np.nan
+    np.save(nan, a)
+    with pytest.raises(ValueError, match=r"nan\.npy: contains NaN"):
+        read_mola_control(nan)
+    wrong = tmp_path / "wrong.npy"
+    np.save(wrong, np.ones((20, 21, 3)))
+    with pytest.raises(ValueError, match=r"wrong\.npy: expected .*\(T, 22, 3\), got \(20, 21, 3\)"):
+        read_mola_control(wrong)
+    pickled = tmp_path / "obj.npy"
+    np.save(pickled, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(ValueError, match=r"obj\.npy: it holds Python objects"):
+        read_mola_control(pickled)
+    with pytest.raises(FileNotFoundError, match="missing.npy"):
+        read_mola_control(tmp_path / "missing.npy")
 
 
 def test_signal_builders_and_validation():
@@ -40,6 +70,105 @@ def test_signal_builders_and_validation():
     free = np.full((10, 22, 3), np.nan)
     free[0, 0] = 1.0
     assert make_signal(free).mask.sum() == 3
+    assert crop_signal(k, 20).frames == 20
+    with pytest.raises(ValueError, match="constrain nothing"):
+        crop_signal(keyframe_signal({30: np.ones((22, 3))}, 40), 20)
+
+
+@pytest.mark.parametrize("name", PATH_PRESETS)
+def test_preset_paths_start_at_the_origin_heading_forward_at_constant_speed(name):
+    frames, speed = 101, 1.2
+    pts = preset_points(name, frames, speed)
+    assert pts.shape == (frames, 2)
+    np.testing.assert_allclose(pts[0], 0.0, atol=1e-9)
+    step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    np.testing.assert_allclose(step, speed / FPS, rtol=0.02)            # constant speed, one point per frame
+    heading = pts[3] - pts[0]
+    assert heading[1] > 0 and abs(heading[0]) < 0.3 * heading[1]        # leaves heading +Z, the way motions face
+    sig = preset_path(name, frames, speed)
+    np.testing.assert_allclose(sig.targets[:, 0, [0, 2]], pts, atol=1e-3)
+    assert sig.mask[:, 0, [0, 2]].all() and not sig.mask[:, 0, 1].any()
+
+
+def test_preset_path_shapes_and_errors():
+    left, right = preset_points("turn-left", 100), preset_points("turn-right", 100)
+    assert left[-1, 0] > 1.0 and right[-1, 0] < -1.0                   # +X is the character's left
+    np.testing.assert_allclose(left * [-1, 1], right, atol=1e-9)
+    circle = preset_points("circle", 100)
+    assert np.linalg.norm(circle[-1]) < 0.02 and circle[:50, 0].max() > 0.5   # closes, turning left
+    line = preset_points("straight", 41, 1.0)                           # the studio's name for it
+    np.testing.assert_allclose(line[-1], [0.0, 2.0], atol=1e-9)
+    assert preset_path("line", 40, height=0.9).mask[:, 0, 1].all()
+    with pytest.raises(ValueError, match="one of line"):
+        preset_points("zigzag", 40)
+    with pytest.raises(ValueError, match="speed"):
+        preset_points("line", 40, speed=-1.0)
+
+
+def test_parse_points():
+    np.testing.assert_array_equal(parse_points("0,0; 0.5,1.5;0,3"), [[0, 0], [0.5, 1.5], [0, 3]])
+    for bad in ("0,0", "0,0;1", "0,0;a,b", "0,0;1,2,3", "0,0;nan,1"):
+        with pytest.raises(ValueError, match="path|point"):
+            parse_points(bad)
+
+
+def test_target_keyframe_and_motion_files(tmp_path):
+    t = np.full((30, 22, 3), np.nan)
+    t[:, 0] = [0.1, 0.9, 0.2]
+    np.save(tmp_path / "t.npy", t)
+    sig = read_targets(tmp_path / "t.npy")
+    assert sig.joint_mask()[:, 0].all() and sig.joint_mask()[:, 1:].sum() == 0
+    mask = np.zeros((30, 22), bool)
+    mask[5, 3] = True
+    np.savez(tmp_path / "t.npz", targets=np.zeros((30, 22, 3)), mask=mask)
+    assert read_targets(tmp_path / "t.npz").joint_mask().sum() == 1     # an explicit zero target stays constrained
+    np.savez(tmp_path / "bad.npz", positions=np.zeros((30, 22, 3)))
+    with pytest.raises(ValueError, match=r"bad\.npz: .*'targets'"):
+        read_targets(tmp_path / "bad.npz")
+    np.savez(tmp_path / "k.npz", frames=np.array([0, 39]), poses=np.ones((2, 22, 3)))
+    k = read_keyframes(tmp_path / "k.npz", frames=40)
+    assert list(np.flatnonzero(k.joint_mask().any(1))) == [0, 39]
+    with pytest.raises(ValueError, match=r"k\.npz: keyframe 39 is outside"):
+        read_keyframes(tmp_path / "k.npz", frames=20)
+    with pytest.raises(ValueError, match=r"k\.npz: say how long"):
+        read_keyframes(tmp_path / "k.npz")
+    np.savez(tmp_path / "k2.npz", frames=np.array([0.5]), poses=np.ones((1, 22, 3)))
+    with pytest.raises(ValueError, match="integers"):
+        read_keyframes(tmp_path / "k2.npz", frames=20)
+    # a saved motion is moved to where generated motions start: origin, facing +Z
+    from conftest import synthetic_walk
+    walk = synthetic_walk(40)
+    turned = walk[..., [2, 1, 0]] * [1, 1, -1] + [3.0, 0.0, -2.0]     # rotated 90 degrees and moved away
+    np.save(tmp_path / "m.npy", turned)
+    j = read_motion_joints(tmp_path / "m.npy")
+    np.testing.assert_allclose(j[0, 0, [0, 2]], 0.0, atol=1e-5)
+    np.testing.assert_allclose(j, walk - walk[:1, :1] * [1, 0, 1], atol=1e-3)
+    with pytest.raises(ValueError, match=r"m\.txt: expected a motion"):
+        read_motion_joints(tmp_path / "m.txt")
+
+
+def test_control_errors_count_constrained_coordinates_only():
+    sig = path_signal([(0, 0), (0, 1)], frames=10)                       # x, z constrained, height free
+    j = np.zeros((10, 22, 3))
+    j[:, 0, [0, 2]] = sig.targets[:, 0, [0, 2]]
+    j[:, 0, 1] = 5.0                                                     # far off in height: not counted
+    j[:, 0, 0] += 0.3
+    j[:, 5] = 9.0                                                        # unconstrained joint: not counted
+    e = control_errors(j, sig)
+    assert e.shape == (10,) and np.allclose(e, 0.3)
+    assert control_errors(j[:8], sig).shape == (8,)                      # a shorter motion is scored on its frames
+
+
+@pytest.fixture(scope="module")
+def pipe(tiny_model):
+    from salad.pipeline import load_pipeline
+    return load_pipeline(tiny_model)
+
+
+def _toy_model(s):
+    def model(x, t):          # a "denoiser" that always predicts z0 = 0
+        return s.from_x0_eps(torch.zeros_like(x), x / (1 - s.alphas_cumprod[t[0]].float()).sqrt(), t)
+    return model
 
 
 def test_guidance_gradient_points_towards_the_target():
@@ -49,39 +178,183 @@ def test_guidance_gradient_points_towards_the_target():
     def loss(z0):
         return ((z0 - target) ** 2).sum()
 
-    def model(x, t):          # a "denoiser" that always predicts z0 = 0
-        return s.from_x0_eps(torch.zeros_like(x), x / (1 - s.alphas_cumprod[t[0]].float()).sqrt(), t)
-
     noise = torch.randn(1, 4, 7, 8, generator=torch.Generator().manual_seed(0))
-    plain = guided_sample(model, noise, s, loss, steps=10, strength=0.0, repeats=1)
-    guided = guided_sample(model, noise, s, loss, steps=10, strength=0.2, repeats=1)
-    assert (guided - target).abs().mean() < (plain - target).abs().mean()
+    plain = guided_sample(_toy_model(s), noise, s, loss, steps=10, strength=0.0, repeats=1)
+    guided = guided_sample(_toy_model(s), noise, s, loss, steps=10, strength=0.1, repeats=1, gradient_steps=1)
+    more = guided_sample(_toy_model(s), noise, s, loss, steps=10, strength=0.1, repeats=1, gradient_steps=2)
+    assert (more - target).abs().mean() < (guided - target).abs().mean() < (plain - target).abs().mean()
     assert step_size(500, 1.0) == pytest.approx(1.0) and step_size(0, 1.0) == 0.0
     assert [default_repeats(i, 50) for i in (0, 20, 45)] == [1, 3, 1]
+    with pytest.raises(ValueError, match="gradient_steps"):
+        guided_sample(_toy_model(s), noise, s, loss, steps=2, gradient_steps=-1)
 
 
-def test_control_follows_targets_and_leaves_unmasked_joints_free(tiny_model):
-    from salad.pipeline import load_pipeline
-    pipe = load_pipeline(tiny_model)
+def test_descend_backtracks_where_a_fixed_step_diverges():
+    scales = torch.tensor([1.0, 1000.0])                     # badly conditioned, like integrated root velocities
+
+    def loss(z):
+        return (scales * z ** 2).sum()
+
+    z = torch.tensor([1.0, 1.0])
+    fixed = z.clone()
+    for _ in range(5):
+        fixed = fixed - 0.01 * 2 * scales * fixed             # a plain gradient step of 0.01 overshoots
+    assert loss(fixed) > loss(z)
+    values = [float(loss(z))]
+    for _ in range(5):
+        z = descend(loss, z, step=0.01)
+        values.append(float(loss(z)))
+    assert all(b < a for a, b in zip(values, values[1:])) and values[-1] < 1e-2 * values[0]
+    many = descend(loss, torch.tensor([1.0, 1.0]), step=0.01, iterations=20)
+    assert abs(float(many[1])) < 1e-2 and 0.5 < float(many[0]) < 1.0    # the stiff direction settles, the other moves
+
+
+def test_position_loss_gradient_moves_joints_towards_targets():
+    targets = torch.zeros(6, 22, 3)
+    mask = torch.zeros(6, 22, 3, dtype=torch.bool)
+    mask[:, 0] = True
+    loss = position_loss(lambda z: z.reshape(z.shape[0], 6, 22, 3), targets, mask)
+    z = torch.randn(2, 6 * 22 * 3, requires_grad=True)
+    g, = torch.autograd.grad(loss(z), z)
+    g = g.reshape(2, 6, 22, 3)
+    assert (g[:, :, 1:] == 0).all()                                      # unmasked joints get no pull
+    moved = z.detach().reshape(2, 6, 22, 3) - 1e-4 * g
+    before = z.detach().reshape(2, 6, 22, 3)[:, :, 0].norm()
+    assert moved[:, :, 0].norm() < before
+
+
+def test_time_travel_noise_shared_across_rows_and_model_hook():
+    s = NoiseSchedule()
+    noise = torch.randn(1, 4, 7, 8, generator=torch.Generator().manual_seed(0)).repeat(2, 1, 1, 1)
+
+    def loss(z0):
+        return (z0 ** 2).sum()
+
+    seen = []
+    shared = guided_sample(_toy_model(s), noise, s, loss, steps=6, strength=0.1, repeats=3,
+                           generator=torch.Generator().manual_seed(1), shared_noise=True, before_model=seen.append)
+    torch.testing.assert_close(shared[0], shared[1])
+    assert seen == [i for i in range(6) for _ in range(3)] and len(seen) == network_evaluations(6, 3)
+    apart = guided_sample(_toy_model(s), noise, s, loss, steps=6, strength=0.1, repeats=3,
+                          generator=torch.Generator().manual_seed(1))
+    assert not torch.allclose(apart[0], apart[1])
+
+
+def test_control_follows_targets_and_leaves_unmasked_joints_free(pipe):
     free = pipe.generate("a person walks forward", seconds=1.6, seed=5, steps=8)
     targets = free.joints.copy()
     targets[:, 0, 0] += 0.5                       # ask the pelvis to be half a metre to the left
     mask = np.zeros((32, 22), dtype=bool)
     mask[:, 0] = True
     sig = make_signal(targets, mask)
-    guided = pipe.control("a person walks forward", signal=sig, seed=5, steps=8, strength=20.0)
+    guided = pipe.control("a person walks forward", signal=sig, seed=5, steps=8, strength=2.0)
     before = np.abs(free.joints[:, 0, 0] - targets[:, 0, 0]).mean()
     after = np.abs(guided.joints[:, 0, 0] - targets[:, 0, 0]).mean()
     assert after < before * 0.8, (before, after)
-    assert guided.info["control_mean_error_m"] >= 0
+    assert guided.info["control_mean_error_m"] == pytest.approx(control_errors(guided.joints, sig).mean())
     # targets of unmasked joints are ignored entirely: moving them changes nothing
     scrambled = targets.copy()
     scrambled[:, 1:] += np.random.default_rng(0).normal(size=scrambled[:, 1:].shape)
     again = pipe.control("a person walks forward", signal=make_signal(scrambled, mask), seed=5, steps=8,
-                         strength=20.0)
+                         strength=2.0)
     np.testing.assert_array_equal(again.joints, guided.joints)
     # with strength 0 guidance changes nothing at all
     off = pipe.control("a person walks forward", signal=sig, seed=5, steps=8, strength=0.0, repeats=1)
     np.testing.assert_allclose(off.joints, free.joints, atol=5e-3)
     with pytest.raises(ValueError, match="strength"):
         pipe.control("a person walks", signal=sig, strength=-1)
+
+
+def test_control_composes_with_attention_editing(pipe):
+    from salad.pipeline import EditResult
+    prompt = "a person waves their left hand"
+    sig = preset_path("line", 32, speed=0.8)
+    # without guidance, the composed run is exactly the plain edit
+    plain = pipe.edit(prompt, mode="mirror", mirror="upper", seed=3, seconds=1.6, steps=6)
+    off = pipe.control(prompt, signal=sig, seed=3, steps=6, strength=0.0, repeats=1,
+                       edit={"mode": "mirror", "mirror": "upper"})
+    assert isinstance(off, EditResult)
+    np.testing.assert_allclose(off.source.joints, plain.source.joints, atol=5e-3)
+    np.testing.assert_allclose(off.edited.joints, plain.edited.joints, atol=5e-3)
+    # with guidance and time travel, both branches follow the path and the edit still applies
+    res = pipe.control(prompt, signal=sig, seed=3, steps=6, strength=2.0, edit={"mirror": "upper"})
+    for guided, free in ((res.source, plain.source), (res.edited, plain.edited)):
+        assert control_errors(guided.joints, sig).mean() < 0.8 * control_errors(free.joints, sig).mean()
+    assert not np.allclose(res.source.joints, res.edited.joints)
+    assert res.params["mirror"] == "upper" and res.params["strength"] == 2.0
+    assert res.edited.attention.steps == network_evaluations(6)           # one map per network evaluation
+    swapped = pipe.control(prompt, signal=sig, seed=3, steps=4, edit={"target": "a person waves their right hand"})
+    assert swapped.params["mode"] == "swap" and swapped.edited.text == "a person waves their right hand"
+    with pytest.raises(ValueError, match="unknown edit option"):
+        pipe.control(prompt, signal=sig, steps=2, edit={"mirorr": "upper"})
+    with pytest.raises(ValueError, match="needs a mode"):
+        pipe.control(prompt, signal=sig, steps=2, edit={"tau": 0.5})
+    with pytest.raises(ValueError, match="target prompt"):
+        pipe.control(prompt, signal=sig, steps=2, edit={"mode": "swap"})
+
+
+def test_edit_controller_counts_denoising_steps_under_time_travel(pipe, monkeypatch):
+    from salad.editing import build
+    made = []
+    real_build = build.build_edit
+
+    def keep(*args, **kw):
+        plan = real_build(*args, **kw)
+        made.append(plan.controller)
+        return plan
+    monkeypatch.setattr(build, "build_edit", keep)
+    pipe.control("a person walks forward", signal=preset_path("line", 32), steps=5, repeats=3, edit={"mode": "mirror"})
+    counter = made[0].counter
+    assert counter.step == 4 and counter.fraction == pytest.approx(0.8)   # not 14: repeats do not advance it
+
+
+# ---------------------------------------------------------------- the `salad control` command
+
+def _parser():
+    from salad.control_cli import add_parser
+    p = argparse.ArgumentParser(prog="salad")
+    add_parser(p.add_subparsers(dest="command", required=True))
+    return p
+
+
+def test_cli_argument_errors(tmp_path, capsys):
+    from salad.control_cli import check_outputs, signal_from_args
+    p = _parser()
+    with pytest.raises(SystemExit):
+        p.parse_args(["control", "a person walks", "-o", "x.npy"])                      # no control source
+    with pytest.raises(SystemExit):
+        p.parse_args(["control", "a person walks", "--path-preset", "line", "--mola", "f.npy", "-o", "x.npy"])
+    assert "not allowed with argument" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        p.parse_args(["control", "a person walks", "--path-preset", "zigzag", "-o", "x.npy"])
+    a = p.parse_args(["control", "a person walks", "--path", "0,0;1", "-o", "x.npy"])
+    with pytest.raises(ValueError, match="path point 2"):
+        signal_from_args(a)
+    np.save(tmp_path / "short.npy", np.ones((40, 22, 3), np.float32))
+    a = p.parse_args(["control", "a person walks", "--mola", str(tmp_path / "short.npy"), "--seconds", "5",
+                      "-o", "x.npy"])
+    with pytest.raises(ValueError, match="only 40"):
+        signal_from_args(a)
+    np.save(tmp_path / "flat.npy", np.ones((40, 66), np.float32))
+    a = p.parse_args(["control", "a person walks", "--targets", str(tmp_path / "flat.npy"), "-o", "x.npy"])
+    with pytest.raises(ValueError, match=r"flat\.npy: expected targets of shape \(T, 22, 3\)"):
+        signal_from_args(a)
+    a = p.parse_args(["control", "a person walks", "--path-preset", "circle", "--seconds", "2", "-o", "x.npy"])
+    assert signal_from_args(a).frames == 40
+    with pytest.raises(ValueError, match="unsupported output type"):
+        check_outputs(["walk.fbx"])
+
+
+def test_cli_control_writes_the_motion_and_prints_its_error(tiny_model, tmp_path, capsys):
+    p = _parser()
+    out = tmp_path / "walk.npy"
+    a = p.parse_args(["control", "a person walks forward", "--path", "0,0;0.3,1", "--seconds", "1.6", "--steps", "4",
+                      "--model", str(tiny_model), "--mirror", "upper", "-o", str(out)])
+    assert a.func(a) == 0
+    printed = capsys.readouterr().out
+    assert "control error: mean" in printed and "source control error" in printed
+    assert np.load(out).shape == (32, 22, 3) and np.load(tmp_path / "walk_source.npy").shape == (32, 22, 3)
+    mean_cm = float(printed.split("control error: mean ")[1].split(" cm")[0])
+    sig = path_signal([(0, 0), (0.3, 1)], 32)
+    assert mean_cm == pytest.approx(100 * control_errors(np.load(out), sig).mean(), abs=0.06)
+    assert math.isfinite(mean_cm)

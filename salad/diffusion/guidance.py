@@ -1,11 +1,25 @@
 """Training-free guided sampling (MoLA §3.4, App. B): MPGD on the clean-latent estimate,
-with time travel.
+with time travel, and a final refinement of the clean latent.
 
 At every DDIM step the clean latent estimate z0|t is decoded through the VAE to
 global joint positions, a loss against the control targets is differentiated back to
-z0|t, and z0|t takes a gradient step before the deterministic DDIM update. Time
-travel repeats a step r times: the updated sample is re-noised from t-1 back to t and
-the network is run again on it (the public implementation reused the stale output).
+z0|t, and z0|t takes `gradient_steps` gradient steps before the deterministic DDIM
+update. Time travel repeats a step r times: the updated sample is re-noised from t-1
+back to t and the network is run again on it (the public implementation reused the
+stale output). After the last step, `refine_steps` more gradient steps act on the
+final latent through the decoder alone.
+
+Two changes to MoLA's fixed steps: (1) every gradient step backtracks until the loss
+really drops (Armijo's rule). Joint positions integrate root velocities over time, so
+the loss is badly conditioned and a fixed step overshoots: traced through one walking
+clip, most steps in the middle of the diffusion increased the pelvis error (up to
+3.5-fold), and doubling the strength made the errors three times larger. (2) the
+final refinement removes most of the error that the last, nearly unguided, steps
+leave. On 32 validation clips following the real pelvis path at 20 DDIM steps (`salad
+eval-control --split val`), strength 1: two fixed steps per evaluation 9.6 cm mean
+error (FID 0.225), one backtracking step 7.1 cm (FID 0.171), plus 50 refinement steps
+2.6 cm (FID 0.170; unconstrained generation 0.177); with backtracking the errors
+hardly change for strengths from 0.5 to 2.
 """
 from __future__ import annotations
 
@@ -16,11 +30,66 @@ import torch
 from .sampling import ModelFn, cfg_combine
 from .schedule import NoiseSchedule
 
+DEFAULT_GRADIENT_STEPS = 1
+DEFAULT_REFINE_STEPS = 50
+SUFFICIENT_DECREASE = 0.5     # accept a step when the loss drops by half of what the gradient predicts
+BACKTRACK = 0.35              # step shrink factor while it does not
+MAX_BACKTRACKS = 6
+# Scales the mean squared error so that strength 1 is the tuned default (see position_loss).
+POSITION_LOSS_SCALE = 1200.0
+
 
 def step_size(t: int, strength: float, train_steps: int = 1000) -> float:
     """MoLA's schedule: largest in the middle of the diffusion, vanishing at both ends."""
     u = t / train_steps
     return 4.0 * strength * u * (1.0 - u)
+
+
+def position_loss(joints_of: Callable[[torch.Tensor], torch.Tensor], targets: torch.Tensor,
+                  mask: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
+    """MoLA's L_Motion on the clean-latent estimate: z0 (B, ...) -> joints_of(z0) (B, T, 22, 3)
+    against targets (T, 22, 3) where mask (T, 22, 3) is set.
+
+    Each row's mean squared error per constrained coordinate, summed over rows (so rows
+    do not pull on each other), times a fixed scale. The mean, not MoLA's sum of
+    distances, keeps `strength` meaning the same for 4 keyframes and for a 900
+    joint-frame signal; squared errors gave lower errors than distances at equal cost.
+    """
+    tgt = targets.float()
+    msk = mask.float()
+    count = msk.sum().clamp_min(1.0)
+
+    def loss(z0: torch.Tensor) -> torch.Tensor:
+        return POSITION_LOSS_SCALE * (((joints_of(z0) - tgt) * msk) ** 2).sum() / count
+    return loss
+
+
+def descend(loss_fn: Callable[[torch.Tensor], torch.Tensor], z: torch.Tensor, step: float,
+            iterations: int = 1) -> torch.Tensor:
+    """`iterations` gradient steps on z, each backtracking until the loss drops by
+    SUFFICIENT_DECREASE of the linear prediction (stopping if it never does). A step
+    starts from twice the last accepted one, at most `step`, to spare backtracks."""
+    z = z.detach()
+    r = step
+    for _ in range(iterations):
+        with torch.enable_grad():
+            zg = z.requires_grad_(True)
+            value = loss_fn(zg)
+            grad, = torch.autograd.grad(value, zg)
+        z = z.detach()
+        value, g2 = float(value.detach()), float((grad * grad).sum())
+        if g2 == 0.0 or not torch.isfinite(grad).all():
+            break
+        r = min(2.0 * r, step)
+        with torch.no_grad():
+            for _ in range(MAX_BACKTRACKS):
+                if float(loss_fn(z - r * grad)) <= value - SUFFICIENT_DECREASE * r * g2:
+                    break
+                r *= BACKTRACK
+            else:
+                break
+        z = z - r * grad
+    return z
 
 
 def default_repeats(i: int, n: int) -> int:
@@ -34,39 +103,61 @@ def default_repeats(i: int, n: int) -> int:
     return 1
 
 
+def network_evaluations(steps: int, repeats: Callable[[int, int], int] | int = default_repeats) -> int:
+    """How many denoiser forwards a guided run of `steps` DDIM steps makes."""
+    rep = (lambda i, n: repeats) if isinstance(repeats, int) else repeats
+    return sum(max(1, int(rep(i, steps))) for i in range(steps))
+
+
 def guided_sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, loss_fn: Callable,
                   steps: int = 50, cfg_scale: float = 7.5, strength: float = 1.0,
-                  repeats: Callable[[int, int], int] | int = default_repeats, generator: torch.Generator | None = None,
+                  repeats: Callable[[int, int], int] | int = default_repeats,
+                  gradient_steps: int = DEFAULT_GRADIENT_STEPS, refine_steps: int = DEFAULT_REFINE_STEPS,
+                  generator: torch.Generator | None = None, shared_noise: bool = False,
+                  before_model: Callable[[int], None] | None = None,
                   on_step: Callable[[int, int, torch.Tensor], None] | None = None) -> torch.Tensor:
-    """DDIM (eta = 0) with MPGD guidance. loss_fn(z0) -> scalar, differentiable in z0."""
+    """DDIM (eta = 0) with MPGD guidance. loss_fn(z0) -> scalar, differentiable in z0.
+
+    strength scales the step cap of every gradient step (the refinement's cap is
+    `strength`, the in-loop caps follow MoLA's schedule); 0 turns guidance off.
+    shared_noise: time travel re-noises every batch row with the same noise (branches
+    that started from one z_T, as in editing, stay comparable). before_model(i) is
+    called with the step index before every network evaluation, so that attention
+    controllers can count steps when time travel evaluates a step several times.
+    """
+    for name, v in (("gradient_steps", gradient_steps), ("refine_steps", refine_steps)):
+        if not isinstance(v, int) or v < 0:
+            raise ValueError(f"{name} must be a non-negative integer, got {v!r}")
     sched = schedule.sampler("ddim", steps)
     ts = [int(t) for t in sched.timesteps]
     abar = schedule.alphas_cumprod
     final = float(abar[0])                       # the scheduler's set_alpha_to_one=False end point
     x = noise
     rep = (lambda i, n: repeats) if isinstance(repeats, int) else repeats
+    fresh_shape = (1,) + tuple(x.shape[1:]) if shared_noise else tuple(x.shape)
     for i, t in enumerate(ts):
         a_t = float(abar[t])
         a_prev = float(abar[ts[i + 1]]) if i + 1 < len(ts) else final
         tt = torch.full((x.shape[0],), t, dtype=torch.long)
+        rho = step_size(t, strength, schedule.config.train_steps)
         r = max(1, int(rep(i, len(ts))))
         for k in range(r):
+            if before_model is not None:
+                before_model(i)
             with torch.no_grad():
                 out = cfg_combine(model(torch.cat((x, x)), torch.cat((tt, tt))).float(), cfg_scale)
                 z0, eps = schedule.to_x0_eps(x, out, tt)
-            rho = step_size(t, strength, schedule.config.train_steps)
-            if rho > 0:
-                with torch.enable_grad():
-                    z = z0.detach().requires_grad_(True)
-                    grad, = torch.autograd.grad(loss_fn(z), z)
-                z0 = z0 - rho * grad
+            if rho > 0 and gradient_steps:
+                z0 = descend(loss_fn, z0, rho, gradient_steps)
             x_prev = a_prev ** 0.5 * z0 + (1 - a_prev) ** 0.5 * eps
             if k < r - 1:
                 # time travel: back to t with fresh noise, then denoise again with a new prediction
                 ratio = a_t / a_prev
-                fresh = torch.randn(x.shape, generator=generator, dtype=x.dtype)
+                fresh = torch.randn(fresh_shape, generator=generator, dtype=x.dtype).expand_as(x)
                 x = ratio ** 0.5 * x_prev + (1 - ratio) ** 0.5 * fresh
         x = x_prev.detach()
         if on_step is not None:
             on_step(i + 1, len(ts), x)
+    if strength > 0 and refine_steps:
+        x = descend(loss_fn, x, float(strength), refine_steps)
     return x
