@@ -4,9 +4,7 @@ attention modulation, guide one with control targets; save and render the result
 picture through salad.render."""
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -21,6 +19,7 @@ from .figures import control_top_view, frames_to_restyle_slider, note_figure
 from .session import Result, Session
 from .validation import AttentionRequest, ControlRequest, EditRequest, GenerateRequest
 from .workspace import Workspace
+from salad.files import atomic_write
 
 Progress = Callable[[str, int, int], None]   # (stage, done, total)
 # Words an edit may add or swap that carry no motion of their own ("a" -> "an" before an adjective).
@@ -45,15 +44,7 @@ def file_stem(req) -> str:
 
 
 def _atomic_save(path: Path, write) -> Path:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write(path, write)
 
 
 def _save_npz(path: Path, **arrays) -> Path:

@@ -162,7 +162,7 @@ def bench(out: Path, models=("embedded", "paper"), batches=(1, 16), quick: bool 
             report["fast_solver"] = fast
         report["profile_embedded_bf16_batch1"] = _subprocess("profile", model="embedded", bf16=True)
     out.parent.mkdir(parents=True, exist_ok=True)
-    from .checkpoint import atomic_write_text
+    from .files import atomic_write_text
     atomic_write_text(out, json.dumps(report, indent=2))
     return report
 

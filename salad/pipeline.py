@@ -18,6 +18,7 @@ import torch
 from .checkpoint import CheckpointError
 from .diffusion.sampling import sample
 from .diffusion.schedule import SAMPLERS, DiffusionConfig, NoiseSchedule
+from .editing.build import EDIT_MODES, build_edit, edit_arguments
 from .config import from_dict
 from .models.denoiser import Denoiser
 from .models.io import load_denoiser, load_vae, vae_latent_checksums
@@ -255,7 +256,7 @@ class Pipeline:
 
     def _control_edit(self, prompt: str, edit: dict, steps: int, frames: int):
         """Encoded text, edit plan and the two branch prompts for Pipeline.control(edit=...)."""
-        from .editing.build import EDIT_KEYS, build_edit, edit_arguments
+        from .editing.build import EDIT_KEYS
 
         if not isinstance(edit, dict):
             raise ValueError(f"edit must be a dict such as {{'mode': 'mirror', 'mirror': 'upper'}}, "
@@ -264,18 +265,25 @@ class Pipeline:
         if unknown:
             raise ValueError(f"unknown edit option(s) {', '.join(map(repr, unknown))}; use {', '.join(EDIT_KEYS)}")
         target = edit.get("target")
-        target = None if target is None else self.check_prompt(target)
         mode = edit.get("mode") or ("swap" if target is not None else "mirror" if edit.get("mirror") else
                                     "reweight" if edit.get("reweight") else None)
         if mode is None:
             raise ValueError("edit needs a mode, a target prompt, a mirror part or re-weighted words")
-        target, mirror = edit_arguments(mode, prompt, target, edit.get("reweight"), edit.get("mirror"))
+        prompt, target, mirror = self.check_edit(prompt, target, mode, edit.get("reweight"), edit.get("mirror"))
         text = self.encode_text(["", "", prompt, target])
         plan = build_edit(text, steps, frames, mode, prompt, target, tau=edit.get("tau"), reweight=edit.get("reweight"),
                           mirror=mirror, self_inject=edit.get("self_inject", 0.2))
         return text, plan, [prompt, target]
 
     # ------------------------------------------------------------ editing
+    def check_edit(self, source_prompt: str, target_prompt: str | None, mode: str, reweight: dict | None,
+                   mirror: str | None) -> tuple[str, str, str | None]:
+        """Cleaned source and target prompts and the mirrored part of an edit request, or a clear error."""
+        source_prompt = self.check_prompt(source_prompt)
+        target_prompt = None if target_prompt is None else self.check_prompt(target_prompt)
+        target_prompt, mirror = edit_arguments(mode, source_prompt, target_prompt, reweight, mirror)
+        return source_prompt, target_prompt, mirror
+
     def edit(self, source_prompt: str, target_prompt: str | None = None, mode: str = "swap", seed: int = 0,
              seconds: float | str | None = None, steps: int = 50, cfg: float = 7.5, sampler: str = "ddim",
              tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
@@ -290,47 +298,14 @@ class Pipeline:
         Source and edited branches, with their CFG rows, run in one batched forward
         from the same noise. Returns both motions and both attention maps.
         """
-        from .editing.align import align_tokens
-        from .editing.controllers import AttentionEdit, KeepSource, Mirror, Refine, Reweight, WordSwap, cfg_rows
-        from .editing.store import AttentionStore
-
-        if mode not in EDIT_MODES:
-            raise ValueError(f"mode must be one of {', '.join(EDIT_MODES)}, got {mode!r}")
-        source_prompt = self.check_prompt(source_prompt)
-        if mode in ("swap", "refine"):
-            if target_prompt is None:
-                raise ValueError(f"{mode} needs a target prompt")
-            target_prompt = self.check_prompt(target_prompt)
-        else:
-            target_prompt = source_prompt if target_prompt is None else self.check_prompt(target_prompt)
-        if mode == "reweight" and not reweight:
-            raise ValueError("reweight needs words and scales, e.g. reweight={'high': 2.0}")
-        if mode == "mirror" and mirror is None:
-            mirror = "all"
+        source_prompt, target_prompt, mirror = self.check_edit(source_prompt, target_prompt, mode, reweight, mirror)
         frames = self.frames_for(seconds)
         steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
         canvas = frames or self.canvas_frames
 
         text = self.encode_text(["", "", source_prompt, target_prompt])
-        rows = cfg_rows(1)
-        align_mode = {"swap": "swap", "refine": "refine"}.get(mode, "same" if target_prompt == source_prompt else "refine")
-        alignment = align_tokens(text, source_row=2, target_row=3, mode=align_mode)
-        if mode == "swap":
-            rule = WordSwap(alignment, 0.8 if tau is None else tau)
-        elif mode == "refine" or target_prompt != source_prompt:
-            rule = Refine(alignment, 0.0 if tau is None else tau)
-        else:
-            rule = KeepSource()
-        transforms = []
-        for word, scale in (reweight or {}).items():
-            words = [w.lower() for w in text.words[3]]
-            if word.lower() not in words:
-                raise ValueError(f"cannot re-weight {word!r}: it is not a word of {target_prompt!r} ({', '.join(words)})")
-            transforms.append(Reweight(text.token_indices(3, words.index(word.lower())), scale))
-        if mirror is not None:
-            transforms.append(Mirror(mirror))
-        store = AttentionStore(text, rows=slice(2, 4), frames=canvas)
-        edit = AttentionEdit(rows, steps, rule, transforms, self_inject=self_inject, observers=[store])
+        plan = build_edit(text, steps, canvas, mode, source_prompt, target_prompt, tau, reweight, mirror, self_inject)
+        edit, store = plan.controller, plan.store
 
         noise = self.noise(1, canvas, seed).repeat(2, 1, 1, 1)        # the same z_T for both branches
         self.denoiser.set_controller(edit)
@@ -342,8 +317,7 @@ class Pipeline:
             self.denoiser.set_controller(None)
         source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed)
         source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
-        params = {"mode": mode, "tau": getattr(rule, "tau", None), "reweight": reweight, "mirror": mirror,
-                  "self_inject": self_inject, "seed": seed, "steps": steps, "cfg": cfg, "sampler": sampler}
+        params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler=sampler)
         return EditResult(source, edited, source.attention, edited.attention, params)
 
     def edit_real(self, motion, source_prompt: str, target_prompt: str | None = None, mode: str = "swap",
@@ -355,7 +329,6 @@ class Pipeline:
         return edit_real(self, motion, source_prompt, target_prompt, mode, **params)
 
 
-EDIT_MODES = ("swap", "refine", "reweight", "mirror")
 
 
 @dataclass

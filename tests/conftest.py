@@ -1,8 +1,16 @@
 import os
+import socket
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
 
 REPO = Path(__file__).resolve().parents[1]
 

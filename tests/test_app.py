@@ -5,7 +5,6 @@ import base64
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -30,16 +29,11 @@ from app.studio import Studio, file_stem, word_tint
 from app.ui.handlers import word_choices
 from app.validation import GenerateRequest, parse_attention, parse_generate
 from app.workspace import Workspace
-from conftest import synthetic_walk
+from conftest import free_port, synthetic_walk
 
 REPO = Path(__file__).resolve().parents[1]
 STEPS = 6
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

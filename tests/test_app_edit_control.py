@@ -1,7 +1,6 @@
 """The studio's Edit and Control tabs through their API (gradio_client) on the tiny trained
 model, and their pieces (validation, presets, uploads, keyframes, comparisons) directly."""
 import json
-import socket
 from pathlib import Path
 
 import app  # noqa: F401  (switches analytics and hub look-ups off before gradio is imported)
@@ -26,17 +25,11 @@ from app.settings import MAX_UPLOAD_BYTES, Settings
 from app.studio import Studio
 from app.validation import ControlRequest, EditRequest, parse_control, parse_edit
 from app.workspace import Workspace
-from conftest import synthetic_walk
+from conftest import free_port, synthetic_walk
 
 STEPS = 4
 SOURCE = "a person waves their right hand happily"
 TARGET = "a person waves their left hand happily"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,6 @@ To shoot the screenshots with a real model:
 """
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -16,6 +15,8 @@ from pathlib import Path
 
 import httpx
 import pytest
+
+from conftest import free_port
 
 JS_ALL_Z = ("Array.from(document.querySelector(PLOT)._fullData)"
             ".flatMap(t => Array.from(t.z || []).filter(v => v !== null))")
@@ -31,11 +32,6 @@ STEPS = int(os.environ.get("SALAD_BROWSER_STEPS", "4"))     # sampling steps of 
 
 pytestmark = pytest.mark.browser
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from salad.diffusion.guidance import (default_repeats, descend, guided_sample, network_evaluations,
-                                      position_loss, step_size)
+                                      position_loss, refine, step_size)
 from salad.diffusion.schedule import NoiseSchedule
 from salad.motion.control import (PATH_PRESETS, control_errors, crop_signal, keyframe_signal, lower_body_signal,
                                   make_signal, parse_points, path_signal, preset_path, preset_points, read_keyframes,
@@ -180,9 +180,12 @@ def test_guidance_gradient_points_towards_the_target():
 
     noise = torch.randn(1, 4, 7, 8, generator=torch.Generator().manual_seed(0))
     plain = guided_sample(_toy_model(s), noise, s, loss, steps=10, strength=0.0, repeats=1)
-    guided = guided_sample(_toy_model(s), noise, s, loss, steps=10, strength=0.1, repeats=1, gradient_steps=1)
-    more = guided_sample(_toy_model(s), noise, s, loss, steps=10, strength=0.1, repeats=1, gradient_steps=2)
+    kw = dict(steps=10, strength=0.1, repeats=1, refine_steps=0)
+    guided = guided_sample(_toy_model(s), noise, s, loss, gradient_steps=1, **kw)
+    more = guided_sample(_toy_model(s), noise, s, loss, gradient_steps=2, **kw)
     assert (more - target).abs().mean() < (guided - target).abs().mean() < (plain - target).abs().mean()
+    refined = guided_sample(_toy_model(s), noise, s, loss, steps=10, strength=0.1, repeats=1, refine_steps=20)
+    assert (refined - target).abs().max() < 1e-3                        # the refinement finishes the job
     assert step_size(500, 1.0) == pytest.approx(1.0) and step_size(0, 1.0) == 0.0
     assert [default_repeats(i, 50) for i in (0, 20, 45)] == [1, 3, 1]
     with pytest.raises(ValueError, match="gradient_steps"):
@@ -206,7 +209,9 @@ def test_descend_backtracks_where_a_fixed_step_diverges():
         values.append(float(loss(z)))
     assert all(b < a for a, b in zip(values, values[1:])) and values[-1] < 1e-2 * values[0]
     many = descend(loss, torch.tensor([1.0, 1.0]), step=0.01, iterations=20)
-    assert abs(float(many[1])) < 1e-2 and 0.5 < float(many[0]) < 1.0    # the stiff direction settles, the other moves
+    assert abs(float(many[1])) < 1e-2 and 0.5 < float(many[0]) < 1.0    # the stiff direction settles, the other crawls
+    # the final refinement's quasi-Newton steps solve the same problem outright
+    assert float(loss(refine(loss, torch.tensor([1.0, 1.0]), iterations=20))) < 1e-8
 
 
 def test_position_loss_gradient_moves_joints_towards_targets():
@@ -231,11 +236,11 @@ def test_time_travel_noise_shared_across_rows_and_model_hook():
         return (z0 ** 2).sum()
 
     seen = []
-    shared = guided_sample(_toy_model(s), noise, s, loss, steps=6, strength=0.1, repeats=3,
+    shared = guided_sample(_toy_model(s), noise, s, loss, steps=6, strength=0.1, repeats=3, refine_steps=0,
                            generator=torch.Generator().manual_seed(1), shared_noise=True, before_model=seen.append)
     torch.testing.assert_close(shared[0], shared[1])
     assert seen == [i for i in range(6) for _ in range(3)] and len(seen) == network_evaluations(6, 3)
-    apart = guided_sample(_toy_model(s), noise, s, loss, steps=6, strength=0.1, repeats=3,
+    apart = guided_sample(_toy_model(s), noise, s, loss, steps=6, strength=0.1, repeats=3, refine_steps=0,
                           generator=torch.Generator().manual_seed(1))
     assert not torch.allclose(apart[0], apart[1])
 
@@ -294,15 +299,15 @@ def test_control_composes_with_attention_editing(pipe):
 
 
 def test_edit_controller_counts_denoising_steps_under_time_travel(pipe, monkeypatch):
-    from salad.editing import build
+    import salad.pipeline
     made = []
-    real_build = build.build_edit
+    real_build = salad.pipeline.build_edit
 
     def keep(*args, **kw):
         plan = real_build(*args, **kw)
         made.append(plan.controller)
         return plan
-    monkeypatch.setattr(build, "build_edit", keep)
+    monkeypatch.setattr(salad.pipeline, "build_edit", keep)
     pipe.control("a person walks forward", signal=preset_path("line", 32), steps=5, repeats=3, edit={"mode": "mirror"})
     counter = made[0].counter
     assert counter.step == 4 and counter.fraction == pytest.approx(0.8)   # not 14: repeats do not advance it

@@ -128,7 +128,7 @@ def test_edit_real_from_bvh_with_retargeting(pipe, tmp_path):
 ])
 def test_edit_real_rejects_bad_arrays(pipe, motion, match):
     with pytest.raises(ValueError, match=match):
-        edit_real(pipe, motion, PROMPT, mode="mirror", steps=2)
+        pipe.edit_real(motion, PROMPT, mode="mirror", steps=2)
 
 
 def test_edit_real_rejects_bad_files_and_settings(pipe, tmp_path):

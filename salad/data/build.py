@@ -33,10 +33,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..checkpoint import atomic_write_text
+from ..files import atomic_write_text
 from ..motion import representation as rep
 from ..motion.bvh import BvhError, load_bvh
 from .captions import MIRRORED_CONTENT, caption_line, captions_for, swap_left_right
+from ..files import atomic_write, atomic_write_text
 
 SPLIT_PATTERN = "TTTXTTTTTTXTTTVTTXTT"   # 16 train, 1 val, 3 test in every 20 clips of a stratum run
 SPLIT_NAMES = {"T": "train", "V": "val", "X": "test"}
@@ -58,14 +59,7 @@ class Clip:
 
 
 def _atomic_save_npy(path: Path, array: np.ndarray) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npy")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.save(f, array)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda f: np.save(f, array))
 
 
 # ---------------------------------------------------------------- discovery

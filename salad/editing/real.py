@@ -276,57 +276,6 @@ def reconstruct(pipe, inv: Inversion, correct: bool = False, progress=None) -> M
 
 # ---------------------------------------------------------------- editing
 
-def edit_controller(text, source_prompt: str, target_prompt: str, mode: str, steps: int, frames: int,
-                    tau: float | None = None, reweight: dict | None = None, mirror: str | None = None,
-                    self_inject: float = 0.2):
-    """Algorithm 1's controller for text rows [u, u, source, target]: -> (controller,
-    attention store, params). The same rules as Pipeline.edit."""
-    from .align import align_tokens
-    from .controllers import AttentionEdit, KeepSource, Mirror, Refine, Reweight, WordSwap, cfg_rows
-    from .store import AttentionStore
-
-    align_mode = {"swap": "swap", "refine": "refine"}.get(mode, "same" if target_prompt == source_prompt else "refine")
-    alignment = align_tokens(text, source_row=2, target_row=3, mode=align_mode)
-    if mode == "swap":
-        rule = WordSwap(alignment, 0.8 if tau is None else tau)
-    elif mode == "refine" or target_prompt != source_prompt:
-        rule = Refine(alignment, 0.0 if tau is None else tau)
-    else:
-        rule = KeepSource()
-    transforms = []
-    for word, scale in (reweight or {}).items():
-        words = [w.lower() for w in text.words[3]]
-        if word.lower() not in words:
-            raise ValueError(f"cannot re-weight {word!r}: it is not a word of {target_prompt!r} ({', '.join(words)})")
-        transforms.append(Reweight(text.token_indices(3, words.index(word.lower())), scale))
-    if mirror is not None:
-        transforms.append(Mirror(mirror))
-    store = AttentionStore(text, rows=slice(2, 4), frames=frames)
-    edit = AttentionEdit(cfg_rows(1), steps, rule, transforms, self_inject=self_inject, observers=[store])
-    params = {"mode": mode, "tau": getattr(rule, "tau", None), "reweight": reweight, "mirror": mirror,
-              "self_inject": self_inject}
-    return edit, store, params
-
-
-def _edit_prompts(pipe, source_prompt, target_prompt, mode, reweight, mirror):
-    from ..pipeline import EDIT_MODES
-
-    if mode not in EDIT_MODES:
-        raise ValueError(f"mode must be one of {', '.join(EDIT_MODES)}, got {mode!r}")
-    source_prompt = pipe.check_prompt(source_prompt)
-    if mode in ("swap", "refine"):
-        if target_prompt is None:
-            raise ValueError(f"{mode} needs a target prompt")
-        target_prompt = pipe.check_prompt(target_prompt)
-    else:
-        target_prompt = source_prompt if target_prompt is None else pipe.check_prompt(target_prompt)
-    if mode == "reweight" and not reweight:
-        raise ValueError("reweight needs words and scales, e.g. reweight={'high': 2.0}")
-    if mode == "mirror" and mirror is None:
-        mirror = "all"
-    return source_prompt, target_prompt, mirror
-
-
 def edit_inverted(pipe, inv: Inversion, target_prompt: str | None = None, mode: str = "swap",
                   tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
                   self_inject: float = 0.2, correct: bool = True, progress=None) -> EditResult:
@@ -334,14 +283,15 @@ def edit_inverted(pipe, inv: Inversion, target_prompt: str | None = None, mode: 
     (exactly, with correct=True), the edited branch starts from the same z_T and gets the
     same per-step corrections."""
     from ..pipeline import EditResult
+    from .build import build_edit
     from .inversion import replay
 
-    source_prompt, target_prompt, mirror = _edit_prompts(pipe, inv.prompt, target_prompt, mode, reweight, mirror)
+    source_prompt, target_prompt, mirror = pipe.check_edit(inv.prompt, target_prompt, mode, reweight, mirror)
     u = _uncond_prompt(inv)
     text = pipe.encode_text([u, u, source_prompt, target_prompt])
     frames = 4 * inv.latent_frames
-    controller, store, params = edit_controller(text, source_prompt, target_prompt, mode, inv.steps, frames,
-                                                tau, reweight, mirror, self_inject)
+    plan = build_edit(text, inv.steps, frames, mode, source_prompt, target_prompt, tau, reweight, mirror, self_inject)
+    controller, store, params = plan.controller, plan.store, plan.params
     start = time.perf_counter()
     z = replay(pipe, inv, text, controller=controller, correct=correct, progress=progress)
     source, edited = decode(pipe, z, [source_prompt, target_prompt])
@@ -371,7 +321,7 @@ def edit_real(pipe, motion, source_prompt: str, target_prompt: str | None = None
 
     if inversion not in METHODS:
         raise ValueError(f"inversion must be one of {', '.join(METHODS)}, got {inversion!r}")
-    _edit_prompts(pipe, source_prompt, target_prompt, mode, reweight, mirror)   # fail before the slow part
+    pipe.check_edit(source_prompt, target_prompt, mode, reweight, mirror)   # fail before the slow part
     steps, cfg, _, _ = pipe.check_sampling(steps, cfg, "ddim")
     total = 2 * steps
 
@@ -472,7 +422,7 @@ def cmd_edit_real(a) -> int:
             raise ValueError(f"{path}: unsupported output type {ext!r}; use "
                              f"{'.mp4' if path == a.side_by_side else ', '.join(OUTPUT_TYPES)}")
     pipe = load_pipeline(a.model)
-    _edit_prompts(pipe, a.source, a.target, a.mode, reweight, a.mirror)
+    pipe.check_edit(a.source, a.target, a.mode, reweight, a.mirror)
     steps, cfg, _, _ = pipe.check_sampling(a.steps, a.cfg, "ddim")
     from .inversion import METHODS
     if a.inversion not in METHODS:

@@ -38,7 +38,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..checkpoint import atomic_write_text
+from ..files import atomic_write_text
 from ..motion import skeleton as sk
 from ..motion.control import ControlSignal, control_errors, make_signal
 from ..motion.representation import FPS, features_to_joints

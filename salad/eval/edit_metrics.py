@@ -12,7 +12,7 @@ from scipy.stats import spearmanr
 
 from ..motion import skeleton as sk
 from ..motion.representation import FPS
-from .physics import PELVIS, heading
+from .physics import PELVIS, check_joints, heading
 
 SIDES = ("left", "right")
 _OTHER = {"left": "right", "right": "left"}
@@ -25,19 +25,8 @@ JOINT_SETS: dict[str, tuple[int, ...]] = {
 }
 
 
-def _joints(x, where: str) -> np.ndarray:
-    j = np.asarray(x, dtype=np.float64)
-    if j.ndim != 3 or j.shape[1:] != (sk.NUM_JOINTS, 3):
-        raise ValueError(f"{where}: expected joints of shape (T, {sk.NUM_JOINTS}, 3), got {j.shape}")
-    if len(j) < 2:
-        raise ValueError(f"{where}: need at least 2 frames, got {len(j)}")
-    if not np.isfinite(j).all():
-        raise ValueError(f"{where}: contains NaN or infinite values")
-    return j
-
-
 def _pair(a, b) -> tuple[np.ndarray, np.ndarray]:
-    a, b = _joints(a, "motion"), _joints(b, "reference")
+    a, b = check_joints(a, "motion"), check_joints(b, "reference")
     if a.shape != b.shape:
         raise ValueError(f"motions to compare must have the same length: {a.shape[0]} vs {b.shape[0]} frames")
     return a, b
@@ -71,7 +60,7 @@ def root_trajectory_distance(joints, reference) -> float:
 
 def speed_profile(joints, fps: float = FPS) -> np.ndarray:
     """(T - 1,) mean speed of all joints per frame step (m/s): the motion's rhythm (steps, wave strokes)."""
-    j = _joints(joints, "joints")
+    j = check_joints(joints, "joints")
     return np.linalg.norm(np.diff(j, axis=0), axis=-1).mean(axis=1) * fps
 
 
@@ -92,7 +81,7 @@ def timing_correlation(joints, reference) -> float:
 def body_frame(joints) -> np.ndarray:
     """Joints relative to the pelvis' ground point, turned so that the body faces +Z in every frame
     (heights stay absolute, so crouching shows)."""
-    j = _joints(joints, "joints")
+    j = check_joints(joints, "joints")
     yaw = heading(j)
     rel = j.copy()
     rel[..., [0, 2]] -= j[:, PELVIS:PELVIS + 1, [0, 2]]

@@ -12,7 +12,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..checkpoint import atomic_write_text
+from ..files import atomic_write_text
 from .metrics import mean_ci
 
 SUCCESS = ("success", "classifier_ok", "physics_ok")

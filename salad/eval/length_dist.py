@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -30,7 +28,7 @@ import torch
 from scipy.spatial.distance import jensenshannon
 from scipy.stats import wasserstein_distance
 
-from ..checkpoint import atomic_write_text
+from ..files import atomic_write, atomic_write_text
 from ..diffusion.sampling import sample
 from ..motion.representation import FPS
 
@@ -176,17 +174,6 @@ def evaluate_lengths(pipe, dataset, samples: int = 256, seed: int = 0, steps: in
     }
 
 
-def _atomic_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def histogram_png(results: dict[str, Any], path: str | Path, dpi: int = 120) -> Path:
     """Real vs generated length histograms (and the fixed-length baseline) as a PNG, written atomically."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -211,7 +198,7 @@ def histogram_png(results: dict[str, Any], path: str | Path, dpi: int = 120) -> 
     ax.legend(fontsize=8)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", facecolor="white")
-    _atomic_bytes(path, buf.getvalue())
+    atomic_write(path, lambda f: f.write(buf.getvalue()))
     return path
 
 

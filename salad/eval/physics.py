@@ -32,7 +32,8 @@ CHECKS = ("left_wrist_path_m", "right_wrist_path_m", "left_wrist_height_m", "rig
           "floating_m", "acceleration_mps2")
 
 
-def _check_joints(joints: np.ndarray, where: str = "joints") -> np.ndarray:
+def check_joints(joints: np.ndarray, where: str = "joints") -> np.ndarray:
+    """(T, 22, 3) finite float64 joints with at least 2 frames, or a ValueError naming `where`."""
     j = np.asarray(joints, dtype=np.float64)
     if j.ndim != 3 or j.shape[1:] != (sk.NUM_JOINTS, 3):
         raise ValueError(f"{where}: expected shape (T, {sk.NUM_JOINTS}, 3), got {j.shape}")
@@ -60,7 +61,7 @@ def heading(joints: np.ndarray) -> np.ndarray:
 
 def turning_angle(joints: np.ndarray) -> float:
     """Net change of facing in degrees over the motion; positive = turned left."""
-    yaw = heading(_check_joints(joints))
+    yaw = heading(check_joints(joints))
     k = max(1, min(TURN_WINDOW, len(yaw) // 4))
     return float(np.degrees(yaw[-k:].mean() - yaw[:k].mean()))
 
@@ -78,7 +79,7 @@ def _body_frame_offsets(joints: np.ndarray, index: int, yaw: np.ndarray) -> np.n
 def foot_skating_ratio(joints: np.ndarray, fps: float = FPS) -> float:
     """Share of frame steps in which a toe near the floor (both ends of the step) slides faster than
     SKATE_SPEED horizontally."""
-    j = _check_joints(joints)
+    j = check_joints(joints)
     toes = j[:, [LEFT_TOE, RIGHT_TOE]]
     planted = (toes[1:, :, 1] < CONTACT_HEIGHT) & (toes[:-1, :, 1] < CONTACT_HEIGHT)
     speed = np.linalg.norm(toes[1:, :, [0, 2]] - toes[:-1, :, [0, 2]], axis=-1) * fps
@@ -94,7 +95,7 @@ def physical_checks(joints: np.ndarray, fps: float = FPS) -> dict[str, float]:
     its mean height above the floor (hovering), and the mean joint acceleration (jitter shows here; the
     evaluator's strided convolutions filter most frame-to-frame noise out of FID).
     """
-    j = _check_joints(joints)
+    j = check_joints(joints)
     yaw = heading(j)
     out: dict[str, float] = {}
     for side, idx in (("left", LEFT_WRIST), ("right", RIGHT_WRIST)):

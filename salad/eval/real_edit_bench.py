@@ -256,7 +256,7 @@ def _pm(s: dict, k: str, scale: float = 1.0, fmt: str = "{:.2f}") -> str:
 
 
 def write_real_edit_report(results: dict, out: str | Path) -> Path:
-    from ..checkpoint import atomic_write_text
+    from ..files import atomic_write_text
     out = Path(out)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2, default=float))
     c = results["config"]

@@ -23,7 +23,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from ..checkpoint import atomic_write_text
+from ..files import atomic_write_text
 from ..data.dataset import MotionDataset
 from ..motion.representation import FEATURE_DIM
 from .metrics import (diversity, frechet_distance, gaussian_stats, matching_distance, mean_ci, multimodality,

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..checkpoint import atomic_write_text
+from ..files import atomic_write_text
 from ..config import apply_overrides, load_toml, to_dict
 from ..data.dataset import MotionDataset, load_normalizer
 from ..models.text_bank import TextBank

@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 import numbers
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ from . import skeleton as sk
 from .bvh_parse import BvhError
 from .quaternion import matrix_to_euler, qbetween, quat_to_matrix
 from .representation import bone_lengths
+from ..files import atomic_write_text
 
 # Rest direction of the bone from each joint's parent to the joint.
 REST_DIRECTIONS = sk.RAW_OFFSETS.copy()
@@ -213,14 +213,4 @@ def save_bvh(path: str | os.PathLike, joints, fps: float = 20.0) -> None:
         raise BvhError(f"{path}: {e}") from None
     if not path.parent.is_dir():
         raise BvhError(f"{path}: folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    atomic_write_text(path, text)

@@ -249,7 +249,8 @@ def attention_png(att: np.ndarray, words: Sequence[str] | str, path: str | os.Pa
     from matplotlib.colors import LinearSegmentedColormap
     from matplotlib.figure import Figure
 
-    from .video import _atomic, _check_out
+    from ..files import atomic_path
+    from .video import _check_out
 
     out = _check_out(path, (".png",))
     arr, words = _check_attention(att, words)
@@ -276,6 +277,6 @@ def attention_png(att: np.ndarray, words: Sequence[str] | str, path: str | os.Pa
         if i // cols == rows - 1 or i + cols >= n:
             ax.set_xlabel("time (s)", fontsize=9)
     fig.colorbar(image, ax=list(axes[:n]), label="attention", shrink=0.9)
-    with _atomic(out) as tmp:
+    with atomic_path(out) as tmp:
         fig.savefig(tmp, format="png", facecolor="white")
     return out

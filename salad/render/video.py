@@ -7,9 +7,8 @@ in one go, then each frame is one buffer update + draw + read-back, and the enco
 from __future__ import annotations
 
 import os
-import tempfile
 import time
-from contextlib import closing, contextmanager
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
@@ -23,6 +22,7 @@ from . import geometry as geo
 from . import overlay, style
 from .backend import gl_backend
 from .engine import engine
+from ..files import atomic_path
 
 Progress = Callable[[int, int], None]
 DEFAULT_SIZE = (448, 448)
@@ -124,20 +124,6 @@ def _check_out(path, suffixes: tuple[str, ...]) -> Path:
     if not p.parent.exists():
         raise ValueError(f"{p}: folder {p.parent} does not exist")
     return p
-
-
-@contextmanager
-def _atomic(path: Path) -> Iterator[Path]:
-    """Yield a temporary sibling of `path` (same suffix); move it over `path` only on success."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp)
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 # ------------------------------------------------------------------ one panel
@@ -339,7 +325,7 @@ def render_side_by_side(motions: Sequence[np.ndarray], labels: Sequence[str], pa
 def _encode(frames: Iterator[np.ndarray], out: Path, fps: float) -> None:
     import imageio.v2 as imageio
 
-    with _atomic(out) as tmp:
+    with atomic_path(out) as tmp:
         writer = imageio.get_writer(
             tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
             quality=None, macro_block_size=2, ffmpeg_log_level="error",
@@ -379,7 +365,7 @@ def save_gif(joints_or_frames: np.ndarray, path: str | os.PathLike, fps: float =
     palette = Image.fromarray(np.concatenate(list(sample), axis=0)).quantize(
         colors=255, method=Image.Quantize.MEDIANCUT)
     q = [im.quantize(palette=palette, dither=Image.Dither.NONE) for im in images]
-    with _atomic(out) as tmp:
+    with atomic_path(out) as tmp:
         q[0].save(tmp, format="GIF", save_all=True, append_images=q[1:], loop=0,
                   duration=int(round(1000 * stride / fps)), optimize=False, disposal=1)
     return out
@@ -401,7 +387,7 @@ def save_frame_strip(joints_or_frames: np.ndarray, path: str | os.PathLike, n: i
         overlay.label_patch(title, tiles[0].shape[1], tiles[0].shape[0]).blend(tiles[0])
     gap = np.full((tiles[0].shape[0], 2, 3), 255, np.uint8)
     strip = np.concatenate([x for t in tiles for x in (t, gap)][:-1], axis=1)
-    with _atomic(out) as tmp:
+    with atomic_path(out) as tmp:
         Image.fromarray(strip).save(tmp, format="PNG", optimize=False)
     return out
 

@@ -1,0 +1,19 @@
+import os
+
+import pytest
+
+from salad.files import atomic_write, atomic_write_text
+
+
+def test_atomic_writes_have_ordinary_permissions_and_leave_nothing_on_failure(tmp_path):
+    umask = os.umask(0)
+    os.umask(umask)
+    p = atomic_write_text(tmp_path / "a" / "report.md", "ok\n")
+    assert p.read_text() == "ok\n" and (p.stat().st_mode & 0o777) == (0o666 & ~umask)
+
+    def broken(f):
+        f.write(b"half")
+        raise RuntimeError("disk full")
+    with pytest.raises(RuntimeError):
+        atomic_write(p, broken)
+    assert p.read_text() == "ok\n" and sorted(x.name for x in p.parent.iterdir()) == ["report.md"]
