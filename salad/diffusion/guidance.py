@@ -22,7 +22,7 @@ clips following the real pelvis path, 20 DDIM steps, strength 1):
 2. The final refinement removes what the last, nearly unguided, steps leave: 50
    gradient steps brought the error to 2.6 cm, 50 L-BFGS evaluations to 0.6 cm (FID
    0.157 vs 0.159 unconstrained, R-precision unchanged by it; foot skating 0.18 vs
-   0.16 without it), for about 1 s more per motion on one CPU thread.
+   0.16 without it), for 1-2 s more per motion on one CPU thread.
 """
 from __future__ import annotations
 
@@ -140,8 +140,8 @@ def guided_sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, 
                   on_step: Callable[[int, int, torch.Tensor], None] | None = None) -> torch.Tensor:
     """DDIM (eta = 0) with MPGD guidance. loss_fn(z0) -> scalar, differentiable in z0.
 
-    strength scales the step cap of every gradient step (the refinement's cap is
-    `strength`, the in-loop caps follow MoLA's schedule); 0 turns guidance off.
+    strength scales the cap of the in-loop gradient steps (MoLA's schedule); 0 turns
+    guidance off, the final refinement included.
     shared_noise: time travel re-noises every batch row with the same noise (branches
     that started from one z_T, as in editing, stay comparable). before_model(i) is
     called with the step index before every network evaluation, so that attention
