@@ -243,6 +243,9 @@ class Pipeline:
             if plan is not None:
                 self.denoiser.set_controller(None)
         motions = self.decode(z, frames, prompts, seed)
+        if not all(np.isfinite(m.joints).all() for m in motions):
+            raise ValueError(f"guided sampling diverged (strength {strength}, {steps} steps): "
+                               "lower the strength or use more steps")
         for m in motions:
             err = control_errors(m.joints, sig)
             m.info.update(control_mean_error_m=float(err.mean()), control_max_error_m=float(err.max()),
