@@ -104,13 +104,18 @@ def test_attention_edit_touches_only_the_conditional_target_rows():
     temporal = torch.rand(4 * J, H, T, T).softmax(-1)
     cross = torch.rand(4, H, T * J, L).softmax(-1)
     t_out = edit(AttentionCall("temporal", 0, temporal, 4, T, J))
-    assert torch.equal(t_out[3 * J:], temporal[2 * J:3 * J]) and torch.equal(t_out[:3 * J], temporal[:3 * J])
+    perm = Mirror("all").perm
+    # the injected source self-attention is mirrored too: target part p takes source part perm[p]
+    assert torch.equal(t_out[3 * J:], temporal[2 * J:3 * J][perm]) and torch.equal(t_out[:3 * J], temporal[:3 * J])
+    skeletal = torch.rand(4 * T, H, J, J).softmax(-1)
+    s_out = edit(AttentionCall("skeletal", 0, skeletal, 4, T, J))
+    assert torch.equal(s_out[3 * T:], skeletal[2 * T:3 * T][:, :, perm][:, :, :, perm])
     c_out = edit(AttentionCall("cross", 0, cross, 4, T, J))
     grid_in, grid_out = cross.view(4, H, T, J, L), c_out.view(4, H, T, J, L)
     assert torch.equal(grid_out[:3], grid_in[:3])
     assert torch.equal(grid_out[3], Mirror("all")(grid_in[2:3])[0])
     # after the injection window, self-attention is left alone
-    for _ in range(3):
+    for _ in range(2):
         edit(AttentionCall("temporal", 0, temporal, 4, T, J))
     late = edit(AttentionCall("temporal", 0, temporal, 4, T, J))
     assert torch.equal(late, temporal)

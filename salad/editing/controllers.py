@@ -135,6 +135,15 @@ class Mirror:
     def __call__(self, m: torch.Tensor) -> torch.Tensor:   # (b, heads, T, J, L)
         return m.index_select(3, self.perm.to(m.device))    # a new tensor: stored maps stay as they were
 
+    def self_attention(self, kind: str, m: torch.Tensor, frames: int, parts: int) -> torch.Tensor:
+        """The source's self-attention as its mirror image would have it: part p of the target
+        takes part perm[p]'s temporal map, and skeletal maps are permuted on both axes.
+        Injecting unmirrored maps would hold the edit to the source's sides."""
+        perm = self.perm.to(m.device)
+        if kind == "temporal":                              # (b * parts, heads, T, T)
+            return m.unflatten(0, (-1, parts)).index_select(1, perm).flatten(0, 1)
+        return m.index_select(2, perm).index_select(3, perm)  # skeletal: (b * frames, heads, J, J)
+
 
 # ---------------------------------------------------------------- the controller
 
@@ -162,8 +171,12 @@ class AttentionEdit:
         elif self.counter.fraction < self.self_inject:
             per = call.parts if call.kind == "temporal" else call.frames
             src, tgt = _expand(self.rows.source, per), _expand(self.rows.target, per)
+            injected = probs[src]
+            for t in self.transforms:
+                if hasattr(t, "self_attention"):
+                    injected = t.self_attention(call.kind, injected, call.frames, call.parts)
             probs = probs.clone()
-            probs[tgt] = probs[src]
+            probs[tgt] = injected
         for obs in self.observers:
             obs(AttentionCall(call.kind, call.layer, probs, call.batch, call.frames, call.parts))
         return probs
