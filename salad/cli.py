@@ -5,6 +5,7 @@ import argparse
 import importlib
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -140,6 +141,7 @@ def cmd_eval(a) -> int:
         torch.set_num_threads(a.threads)
     ev = load_evaluator(a.evaluator)
     ds = MotionDataset(a.data, a.split, max_frames=10 ** 9)
+    partial = Path(a.out) / "partial"      # finished repeats, so that a rerun resumes
     rows = {"Real motion": evaluate_t2m(ground_truth_generator(ds), ds, ev, repeats=a.repeats, seed=a.seed,
                                         progress=True)}
     for model in [] if a.real_only else a.model or [None]:
@@ -150,7 +152,8 @@ def cmd_eval(a) -> int:
         rows[f"{name} VAE reconstruction"]["MPJPE_m"] = vae.mpjpe_m
         gen = ModelGenerator(pipe, steps=a.steps, sampler=a.sampler, cfg=a.cfg, seed=a.seed)
         rows[name] = evaluate_t2m(gen, ds, ev, repeats=a.repeats, seed=a.seed, mm_prompts=a.mm_prompts,
-                                  mm_repeats=a.mm_repeats, progress=True)
+                                  mm_repeats=a.mm_repeats, progress=True,
+                                  state_file=partial / f"{re.sub(r'[^A-Za-z0-9]+', '-', name).strip('-')}.json")
     path = write_report(rows, a.out)
     print(path.read_text())
     return 0

@@ -314,6 +314,18 @@ def test_model_and_vae_rows_of_the_protocol(labelled_dataset, minilm, tiny_model
     res = evaluate_t2m(gen, ds, ev, repeats=2, batch_size=4, mm_prompts=2, mm_repeats=6, max_frames=40)
     assert np.isfinite(res["metrics"]["FID"]["mean"]) and gen.calls >= 4
     assert res["metrics"]["MultiModality"]["mean"] > 0
+    # an interrupted run resumes after its finished repeats and ends where an uninterrupted one does
+    state = tmp_path / "partial" / "model.json"
+    kw = dict(batch_size=4, mm_prompts=2, mm_repeats=6, max_frames=40, state_file=state)
+    evaluate_t2m(ModelGenerator(pipe, steps=3), ds, ev, repeats=1, **kw)
+    assert len(json.loads(state.read_text())["repeats"]) == 1
+    resumed_gen = ModelGenerator(pipe, steps=3)
+    resumed = evaluate_t2m(resumed_gen, ds, ev, repeats=2, **kw)
+    assert resumed_gen.calls == gen.calls
+    for name, m in res["metrics"].items():
+        assert np.allclose(resumed["metrics"][name]["values"], m["values"], rtol=1e-5), name
+    other = evaluate_t2m(ModelGenerator(pipe, steps=4), ds, ev, repeats=1, **kw)   # another generator: no reuse
+    assert other["metrics"]["FID"]["values"][0] != res["metrics"]["FID"]["values"][0]
     vae = VAEReconstruction(pipe)
     rec = evaluate_t2m(vae, ds, ev, repeats=1, batch_size=4, mm_prompts=0, max_frames=40)
     assert np.isfinite(rec["metrics"]["FID"]["mean"]) and 0 < vae.mpjpe_m < 2.0

@@ -2,6 +2,7 @@
 reconstruction of the real motions (its ceiling)."""
 from __future__ import annotations
 
+import hashlib
 from typing import Sequence
 
 import numpy as np
@@ -18,6 +19,17 @@ class ModelGenerator:
     def __init__(self, pipe, steps: int = 50, sampler: str = "ddim", cfg: float = 7.5, seed: int = 0):
         self.pipe, self.steps, self.sampler, self.cfg, self.seed = pipe, steps, sampler, cfg, seed
         self.calls = 0
+
+    def describe(self) -> dict:
+        """What makes two runs' generations the same (for resuming an evaluation)."""
+        if not hasattr(self, "_weights"):
+            digest = hashlib.sha256()
+            for model in (self.pipe.denoiser, self.pipe.vae):
+                for t in model.state_dict().values():
+                    digest.update(t.detach().float().cpu().numpy().tobytes())
+            self._weights = digest.hexdigest()
+        return {"weights_sha256": self._weights, "bf16": self.pipe.bf16, "steps": self.steps,
+                "sampler": self.sampler, "cfg": self.cfg, "seed": self.seed}
 
     def __call__(self, captions: list[str], lengths: list[int]) -> list[np.ndarray]:
         self.calls += 1

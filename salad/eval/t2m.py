@@ -13,6 +13,10 @@ length, in batches of 32 (the last incomplete batch is dropped). Per repeat:
 Results are mean and 95% confidence half-width (1.96 std / sqrt(repeats)) over the repeats.
 
 `salad eval --real-only` scores the real test motions themselves (the "Real motion" row).
+
+A model's 20 repeats take hours on a small CPU, so with `state_file` each finished repeat is saved and a rerun
+of the same protocol and generator continues after the last one (each repeat draws from its own seed, so the
+result is the one an uninterrupted run gives).
 """
 from __future__ import annotations
 
@@ -99,12 +103,25 @@ def _as_dataset(dataset: MotionDataset | str | Path, split: str = "test") -> Mot
     return MotionDataset(dataset, split, max_frames=10 ** 9)
 
 
+def _load_state(path: Path | None, fingerprint: dict) -> dict:
+    """Finished repeats of an earlier run with the same fingerprint (else none)."""
+    empty = {"fingerprint": fingerprint, "repeats": [], "generation_s": 0.0, "calls": 0}
+    if path is None or not path.exists():
+        return empty
+    try:
+        state = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: unreadable evaluation state ({e}); delete it to start over") from None
+    return state if state.get("fingerprint") == fingerprint else empty
+
+
 def evaluate_t2m(generate: Generator, dataset: MotionDataset | str | Path, evaluator, repeats: int = 20,
                  batch_size: int = 32, mm_prompts: int = 100, mm_repeats: int = 30, seed: int = 0,
                  max_frames: int = 196, diversity_pairs: int = 300, mm_pairs: int = 10,
-                 progress: bool = False) -> dict[str, Any]:
+                 progress: bool = False, state_file: str | Path | None = None) -> dict[str, Any]:
     """Run the protocol; `dataset` is a MotionDataset (its items are used as the test set) or a directory
-    (its test split). MultiModality is skipped for the ground-truth generator and when mm_prompts = 0."""
+    (its test split). MultiModality is skipped for the ground-truth generator and when mm_prompts = 0.
+    `state_file` (JSON) keeps finished repeats so that an interrupted run resumes."""
     if repeats < 1 or batch_size < 2:
         raise ValueError(f"need repeats >= 1 and batch_size >= 2, got {repeats} and {batch_size}")
     ds = _as_dataset(dataset)
@@ -117,9 +134,22 @@ def evaluate_t2m(generate: Generator, dataset: MotionDataset | str | Path, evalu
     ref_stats = gaussian_stats(reference)
     is_real = getattr(generate, "uses_references", False)
     do_mm = mm_prompts > 0 and mm_repeats >= 2 and not is_real
-    values: dict[str, list[float]] = {m: [] for m in METRICS}
-    gen_time = 0.0
-    for r in range(repeats):
+    protocol = {"batch_size": batch_size, "motions_per_repeat": n_batches * batch_size,
+                "max_frames": max_frames, "diversity_pairs": diversity_pairs,
+                "mm_prompts": mm_prompts if do_mm else 0, "mm_repeats": mm_repeats if do_mm else 0,
+                "mm_pairs": mm_pairs, "seed": seed, "dataset": str(ds.root), "ground_truth": bool(is_real)}
+    state_path = Path(state_file) if state_file is not None else None
+    describe = getattr(generate, "describe", None)
+    state = _load_state(state_path, {"protocol": protocol, "generator": describe() if describe else None,
+                                     "motions": len(items)})
+    done = state["repeats"][:repeats]
+    values: dict[str, list[float]] = {m: [v[m] for v in done if m in v] for m in METRICS}
+    gen_time = state["generation_s"] if done else 0.0
+    if done and hasattr(generate, "calls"):
+        generate.calls = state["calls"]          # the generator's seeds follow its call count
+    if done and progress:
+        print(f"resuming after {len(done)} finished repeats from {state_path}", flush=True)
+    for r in range(len(done), repeats):
         rng = np.random.default_rng([seed, r])
         order = rng.permutation(len(items))[:n_batches * batch_size]
         captions = [items[i].captions[int(rng.integers(len(items[i].captions)))] for i in order]
@@ -153,6 +183,10 @@ def evaluate_t2m(generate: Generator, dataset: MotionDataset | str | Path, evalu
                 mm_emb.append(evaluator.embed_motions(gens))
             gen_time += time.time() - t0
             values["MultiModality"].append(multimodality(np.stack(mm_emb), mm_pairs, rng))
+        if state_path is not None:
+            state["repeats"] = state["repeats"][:r] + [{m: v[r] for m, v in values.items() if len(v) > r}]
+            state["generation_s"], state["calls"] = gen_time, getattr(generate, "calls", 0)
+            atomic_write_text(state_path, json.dumps(state))
         if progress:
             print(f"repeat {r + 1}/{repeats}: top1 {top[0]:.3f} FID {values['FID'][-1]:.4f} "
                   f"({time.time() - t_start:.0f} s)", flush=True)
@@ -165,11 +199,7 @@ def evaluate_t2m(generate: Generator, dataset: MotionDataset | str | Path, evalu
         "metrics": metrics,
         "reference": {"motions": len(items), "Diversity": diversity(reference, diversity_pairs,
                                                                     np.random.default_rng(seed))},
-        "protocol": {"repeats": repeats, "batch_size": batch_size, "motions_per_repeat": n_batches * batch_size,
-                     "max_frames": max_frames, "diversity_pairs": diversity_pairs,
-                     "mm_prompts": mm_prompts if do_mm else 0, "mm_repeats": mm_repeats if do_mm else 0,
-                     "mm_pairs": mm_pairs, "seed": seed, "dataset": str(ds.root),
-                     "ground_truth": bool(is_real)},
+        "protocol": {"repeats": repeats, **protocol},
         "time_s": {"total": round(time.time() - t_start, 2), "generation": round(gen_time, 2)},
     }
 
