@@ -7,7 +7,7 @@ import signal
 import sys
 from pathlib import Path
 
-from .settings import Settings, default_host, default_port
+from .settings import Settings, default_clips, default_host, default_port
 
 
 def parse_args(argv: list[str] | None = None) -> Settings:
@@ -25,11 +25,18 @@ def parse_args(argv: list[str] | None = None) -> Settings:
                    help="seconds after which an idle session and its files are removed (default 7200)")
     p.add_argument("--control-examples", type=Path, default=None, metavar="DIR",
                    help="a folder of control .npy files (MoLA's format) to offer in the Control tab")
+    p.add_argument("--clips", type=Path, default=None, metavar="DIR",
+                   help="a dataset build (HumanML3D layout, from `salad data build`) whose test clips the Real "
+                        "motion tab offers (default: data/bandai-hml when it has been built)")
+    p.add_argument("--no-clips", action="store_true", help="offer no test clips in the Real motion tab")
     a = p.parse_args(argv)
+    if a.no_clips and a.clips is not None:
+        p.error("--clips and --no-clips exclude each other")
+    clips = None if a.no_clips else (a.clips if a.clips is not None else default_clips())
     try:
         return Settings(model=a.model, host=a.host, port=a.port, concurrency=a.concurrency, threads=a.threads,
                         bf16=not a.fp32, tmp_dir=a.tmp_dir, session_ttl_s=a.session_ttl,
-                        control_examples=a.control_examples)
+                        control_examples=a.control_examples, clips=clips)
     except ValueError as exc:
         p.error(str(exc))
 

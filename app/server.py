@@ -12,7 +12,7 @@ from .settings import Settings
 from .workspace import Workspace
 
 log = logging.getLogger("salad.studio")
-MAX_UPLOAD = "1mb"     # control targets are the only uploads; app.settings.MAX_UPLOAD_BYTES is checked again
+MAX_UPLOAD = "4mb"     # control targets and motions (BVH, NPY); app.settings.MAX_UPLOAD_BYTES is checked again
 
 
 @dataclass

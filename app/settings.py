@@ -27,10 +27,16 @@ MIRROR_PARTS = ("lower", "upper", "all")
 
 # Guided control (MoLA's training-free guidance).
 MAX_STRENGTH = 20.0
-DEFAULT_STRENGTH = 3.0      # on the embedded model: path error about half that of 1.0
+DEFAULT_STRENGTH = 1.0      # Pipeline.control's default (its guidance steps search their own size)
 DEFAULT_PATH_SPEED = 1.0    # m/s along a preset path: an ordinary walk
 MAX_PATH_SPEED = 3.0
-MAX_UPLOAD_BYTES = 1_000_000   # a (196, 22, 3) float64 target array is about 100 kB
+MAX_UPLOAD_BYTES = 4_000_000   # the largest Bandai BVH clip is 2.4 MB; a (196, 22, 3) float64 target ~100 kB
+
+# Editing real motions (BVH / NPY uploads, or test clips of a dataset build).
+REAL_UPLOAD_TYPES = (".bvh", ".npy")   # a Bandai BVH clip is 30 kB to 300 kB (90% of them), 2.4 MB at most
+MAX_CLIPS = 120                         # test clips offered in the picker, spread over the split
+DEFAULT_CLIPS = Path(__file__).resolve().parents[1] / "data" / "bandai-hml"
+CLIP_LAYOUT = ("new_joint_vecs", "texts", "test.txt")   # what a dataset build must hold to offer clips
 
 
 @dataclass(frozen=True)
@@ -48,6 +54,7 @@ class Settings:
     threads: int | None = None      # torch threads; None keeps torch's default
     bf16: bool = True
     control_examples: Path | None = None   # a folder of MoLA-style control .npy files offered in the Control tab
+    clips: Path | None = None       # a dataset build (HumanML3D layout) whose test clips the Real motion tab offers
 
     def __post_init__(self):
         if not 1 <= self.port <= 65535:
@@ -62,11 +69,21 @@ class Settings:
             raise ValueError(f"threads must be positive, got {self.threads}")
         if self.control_examples is not None and not Path(self.control_examples).is_dir():
             raise ValueError(f"{self.control_examples}: the control examples folder does not exist")
+        if self.clips is not None:
+            missing = [name for name in CLIP_LAYOUT if not (Path(self.clips) / name).exists()]
+            if missing:
+                raise ValueError(f"{self.clips}: not a dataset build (it lacks {', '.join(missing)}); "
+                                 "make one with `salad data build`")
 
 
 def default_host() -> str:
     """127.0.0.1, unless GRADIO_SERVER_NAME says otherwise (Hugging Face Spaces sets it to 0.0.0.0)."""
     return os.environ.get("GRADIO_SERVER_NAME") or DEFAULT_HOST
+
+
+def default_clips() -> Path | None:
+    """The repository's own dataset build (data/bandai-hml), when it has been built."""
+    return DEFAULT_CLIPS if all((DEFAULT_CLIPS / name).exists() for name in CLIP_LAYOUT) else None
 
 
 def default_port() -> int:

@@ -7,13 +7,18 @@ import math
 from dataclasses import dataclass
 from numbers import Real
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from salad.motion.representation import FPS
 from salad.pipeline import EDIT_MODES, MIN_AUTO_FRAMES
 
 from .settings import (
-    DEFAULT_TAU, MAX_CFG, MAX_PATH_SPEED, MAX_REWEIGHT, MAX_SEED, MAX_STEPS, MAX_STRENGTH, MIRROR_PARTS,
+    DEFAULT_SELF_INJECT, DEFAULT_TAU, MAX_CFG, MAX_PATH_SPEED, MAX_REWEIGHT, MAX_SEED, MAX_STEPS, MAX_STRENGTH,
+    MIRROR_PARTS,
 )
+
+if TYPE_CHECKING:
+    from .real_edit import RealInput
 
 
 @dataclass(frozen=True)
@@ -275,3 +280,53 @@ def parse_control(pipe, prompt, task, preset, seconds, speed, upload, example, k
     req = ControlRequest(prompt=text, task=task, detail=detail, base=base_id,
                          strength=_number("strength", strength, 0.0, MAX_STRENGTH), seed=seed, steps=n_steps, cfg=scale)
     return req, signal
+
+
+# ---------------------------------------------------------------- editing real motions
+
+@dataclass(frozen=True)
+class RealEditRequest:
+    input_name: str                 # the uploaded file's name or the test clip's id
+    input_kind: str                 # bvh | joints | features | clip
+    source: str                     # describes the input
+    target: str | None
+    mode: str
+    tau: float | None
+    reweight: tuple[tuple[str, float], ...]
+    mirror: str | None
+    self_inject: float
+    inversion: str                  # a method of salad.editing.inversion
+    steps: int
+    cfg: float
+
+
+def parse_real_edit(pipe, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion,
+                    steps, cfg, *, upload_root: Path, clips=None) -> tuple[RealEditRequest, RealInput]:
+    """Validate the Real motion panel -> (RealEditRequest, app.real_edit.RealInput). The motion is
+    an upload (under `upload_root`) or a test clip of `clips` (an app.real_edit.ClipLibrary),
+    never both; the edit is checked as the Edit panel's, with the edit's default τ and
+    self-attention injection, and sampled with DDIM as the inversion requires."""
+    from salad.editing.inversion import METHODS
+
+    from . import real_edit
+
+    up = real_edit.upload_path(upload, upload_root)
+    picked = clip not in (None, "", "none")
+    if up is not None and picked:
+        raise ValueError("give either an uploaded motion or a test clip, not both")
+    if up is not None:
+        motion = real_edit.read_upload(*up)
+    elif picked:
+        if clips is None:
+            raise ValueError("no test clips are offered: start the studio with --clips DIR (a dataset build)")
+        motion = clips.read(clip, pipe.canvas_frames)
+    else:
+        raise ValueError("upload a motion (.bvh, or .npy joints or features)"
+                         + (" or pick a test clip" if clips is not None else ""))
+    method = _choice("inversion", inversion, METHODS)
+    ed = parse_edit(pipe, source, mode, target, None, reweight_word, reweight_scale, mirror, DEFAULT_SELF_INJECT,
+                    True, None, 0, steps, cfg, "ddim")
+    req = RealEditRequest(input_name=motion.name, input_kind=motion.kind, source=ed.source, target=ed.target,
+                          mode=ed.mode, tau=ed.tau, reweight=ed.reweight, mirror=ed.mirror, self_inject=ed.self_inject,
+                          inversion=method, steps=ed.steps, cfg=ed.cfg)
+    return req, motion

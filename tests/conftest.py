@@ -1,5 +1,6 @@
 import os
 import socket
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -149,6 +150,37 @@ def tiny_model(tiny_dataset, tmp_path_factory) -> Path:
     (model / "vae").symlink_to(root / "vae-run" / "model")
     (model / "denoiser").symlink_to(root / "den-run" / "model")
     return model
+
+
+@pytest.fixture(scope="session")
+def pipe(tiny_model):
+    """The tiny model's pipeline, loaded once and shared by the studio tests."""
+    from salad.pipeline import load_pipeline
+
+    return load_pipeline(tiny_model)
+
+
+@contextmanager
+def serve_studio(pipe, tmp_dir: Path, **settings):
+    """A studio over `pipe` on a free local port, served in background threads; yields
+    (url, StudioApp) and closes it (server and temp root) afterwards."""
+    from app.server import create_app, launch
+    from app.settings import Settings
+
+    config = Settings(port=free_port(), tmp_dir=tmp_dir, concurrency=2, **settings)
+    studio_app = create_app(config, pipe=pipe)
+    try:
+        yield launch(studio_app, config, block=False), studio_app
+    finally:
+        studio_app.close()
+
+
+@pytest.fixture
+def client(server, tmp_path):
+    """An API client of the test module's `server` fixture, downloading into tmp_path."""
+    from gradio_client import Client
+
+    return Client(server[0], verbose=False, download_files=str(tmp_path), analytics_enabled=False)
 
 
 BANDAI_SUBSET = (

@@ -19,40 +19,23 @@ from gradio_client import Client
 from gradio_client.exceptions import AppError
 
 from salad.editing.store import AttentionMaps
-from salad.pipeline import load_pipeline
 
 from app.figures import frames_to_restyle_slider
-from app.server import create_app, launch
 from app.session import KEEP_RESULTS, Result, Session
-from app.settings import Settings
 from app.studio import Studio, file_stem, word_tint
 from app.ui.handlers import word_choices
 from app.validation import GenerateRequest, parse_attention, parse_generate
 from app.workspace import Workspace
-from conftest import free_port, synthetic_walk
+from conftest import free_port, serve_studio, synthetic_walk
 
 REPO = Path(__file__).resolve().parents[1]
 STEPS = 6
 
 
-
-@pytest.fixture(scope="module")
-def pipe(tiny_model):
-    return load_pipeline(tiny_model)
-
-
 @pytest.fixture(scope="module")
 def server(pipe, tmp_path_factory):
-    settings = Settings(port=free_port(), tmp_dir=tmp_path_factory.mktemp("studio"), concurrency=2)
-    studio_app = create_app(settings, pipe=pipe)
-    url = launch(studio_app, settings, block=False)
-    yield url, studio_app
-    studio_app.close()
-
-
-@pytest.fixture
-def client(server, tmp_path):
-    return Client(server[0], verbose=False, download_files=str(tmp_path), analytics_enabled=False)
+    with serve_studio(pipe, tmp_path_factory.mktemp("studio")) as served:
+        yield served
 
 
 def generate(client, prompt, seconds=1.6, seed=0, steps=STEPS, cfg=7.5, sampler="ddim"):

@@ -6,12 +6,11 @@ from pathlib import Path
 import app  # noqa: F401  (switches analytics and hub look-ups off before gradio is imported)
 import numpy as np
 import pytest
-from gradio_client import Client, handle_file
+from gradio_client import handle_file
 from gradio_client.exceptions import AppError
 
 from salad.motion import skeleton as sk
 from salad.motion.control import make_signal
-from salad.pipeline import load_pipeline
 
 from app.compare import motion_difference
 from app.controls import (
@@ -19,22 +18,16 @@ from app.controls import (
     upload_file,
 )
 from app.figures import control_top_view
-from app.server import create_app, launch
 from app.session import Result, Session
 from app.settings import MAX_UPLOAD_BYTES, Settings
 from app.studio import Studio
 from app.validation import ControlRequest, EditRequest, parse_control, parse_edit
 from app.workspace import Workspace
-from conftest import free_port, synthetic_walk
+from conftest import serve_studio, synthetic_walk
 
 STEPS = 4
 SOURCE = "a person waves their right hand happily"
 TARGET = "a person waves their left hand happily"
-
-
-@pytest.fixture(scope="module")
-def pipe(tiny_model):
-    return load_pipeline(tiny_model)
 
 
 @pytest.fixture(scope="module")
@@ -49,17 +42,8 @@ def examples_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def server(pipe, examples_dir, tmp_path_factory):
-    settings = Settings(port=free_port(), tmp_dir=tmp_path_factory.mktemp("studio"), concurrency=2,
-                        control_examples=examples_dir)
-    studio_app = create_app(settings, pipe=pipe)
-    url = launch(studio_app, settings, block=False)
-    yield url, studio_app
-    studio_app.close()
-
-
-@pytest.fixture
-def client(server, tmp_path):
-    return Client(server[0], verbose=False, download_files=str(tmp_path), analytics_enabled=False)
+    with serve_studio(pipe, tmp_path_factory.mktemp("studio"), control_examples=examples_dir) as served:
+        yield served
 
 
 def edit(client, source=SOURCE, mode="swap", target=TARGET, tau=None, word="", scale=2.0, mirror="none",
@@ -345,7 +329,7 @@ def test_uploads_are_checked_before_they_are_read(tmp_path):
     root.mkdir()
     big = root / "big.npy"
     np.save(big, np.zeros(MAX_UPLOAD_BYTES // 8 + 10))
-    with pytest.raises(ValueError, match="big.npy: 1.0 MB is more than the 1 MB"):
+    with pytest.raises(ValueError, match="big.npy: 4.0 MB is more than the 4 MB"):
         upload_file({"path": str(big), "orig_name": "big.npy"}, root)
     np.save(root / "ok.npy", np.zeros((20, 2)))
     (root / "ok.txt").write_text("x")

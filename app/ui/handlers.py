@@ -9,16 +9,18 @@ from collections import Counter
 
 import gradio as gr
 
-from .. import controls
+from .. import controls, real_edit
 from ..figures import control_top_view, note_figure
 from ..session import Result, Session
 from ..settings import DEFAULT_TAU
 from ..studio import Studio
 from ..validation import (
-    AttentionRequest, control_signal, parse_attention, parse_control, parse_edit, parse_generate, parse_word,
+    AttentionRequest, control_signal, parse_attention, parse_control, parse_edit, parse_generate, parse_real_edit,
+    parse_word,
 )
 from .edit_panel import MODE_HELP
 from .control_panel import UPLOAD_HELP
+from .real_panel import real_markdown
 from .summaries import control_markdown, edit_markdown, summary_markdown
 
 log = logging.getLogger("salad.studio")
@@ -66,8 +68,9 @@ def word_choices(words: list[str]) -> list[tuple[str, int]]:
 class Handlers:
     """The functions the page's events call; one instance per app."""
 
-    def __init__(self, studio: Studio):
+    def __init__(self, studio: Studio, clips: "real_edit.ClipLibrary | None" = None):
         self.studio = studio
+        self.clips = clips          # test clips offered in the Real motion tab
 
     def _current(self, state, request: gr.Request) -> Result:
         if not isinstance(state, Session) or state.current is None:
@@ -215,6 +218,35 @@ class Handlers:
         files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "features", "npz", "signal")]
         return session, str(result.files["mp4"]), self.studio.control_figure(result), control_markdown(result), files
 
+    # ------------------------------------------------------------ real motions
+    def real_mode(self, mode, mirror, source, target, current):
+        """As edit_mode, for the Real motion tab (which keeps τ at the mode's default)."""
+        help_text, target_box, _tau, mirror_radio, words = self.edit_mode(mode, mirror, source, target, current)
+        return help_text, target_box, mirror_radio, words
+
+    def real_clip(self, clip):
+        """A test clip was picked: its caption becomes the source prompt and an upload is dropped."""
+        if clip in (None, "", "none"):
+            return gr.Textbox(), gr.File()
+        if self.clips is None:
+            raise ValueError("no test clips are offered: start the studio with --clips DIR (a dataset build)")
+        return self.clips.caption(clip), None
+
+    @staticmethod
+    def real_upload():
+        """A file was uploaded: it replaces a picked test clip."""
+        return ""
+
+    def edit_real(self, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion, steps,
+                  cfg, state, request: gr.Request, progress=gr.Progress()):
+        req, motion = parse_real_edit(self.studio.pipe, upload, clip, source, mode, target, reweight_word,
+                                      reweight_scale, mirror, inversion, steps, cfg,
+                                      upload_root=self.studio.workspace.gradio_cache, clips=self.clips)
+        session = self.studio.session(state, request.session_hash)
+        result = real_edit.edit_real(self.studio, session, req, motion, _gr_progress(progress))
+        files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "features")]
+        return session, str(result.files["mp4"]), real_markdown(result), files
+
     def unload(self, request: gr.Request) -> None:
         # The tab is gone: its files go now; the session's state follows when Gradio drops it.
         try:
@@ -226,5 +258,6 @@ class Handlers:
 def guard_all(handlers: Handlers) -> dict:
     """The handlers wrapped by `guarded`, by name."""
     names = ("length_mode", "generate", "attention", "attention_video", "edit_mode", "edit_words", "edit",
-             "edit_files", "edit_attention", "control_task", "control_preview", "control")
+             "edit_files", "edit_attention", "control_task", "control_preview", "control", "real_mode", "real_clip",
+             "real_upload", "edit_real")
     return {n: guarded(getattr(handlers, n)) for n in names} | {"unload": handlers.unload}

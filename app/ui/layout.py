@@ -1,6 +1,7 @@
 """The page: header, one tab per tool, and the wiring of events (each with an api_name)."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import gradio as gr
@@ -9,18 +10,22 @@ from ..session import Session
 from ..settings import Settings
 from ..studio import Studio
 from ..controls import list_examples
+from ..real_edit import ClipLibrary
 from .attention_panel import build_attention_panel
 from .control_panel import build_control_panel
 from .edit_panel import build_edit_panel
 from .generate_panel import build_generate_panel
 from .handlers import Handlers, guard_all
+from .real_panel import build_real_panel
 from .summaries import escape_md
 
+log = logging.getLogger("salad.studio")
 TITLE = "salad motion studio"
 CSS = """
 #word-chips .wrap { gap: 6px; }
-#summary, #edit-summary, #control-summary { min-height: 1.5em; }
-#motion-video video, #word-video video, #edit-video video, #control-video video { object-fit: contain; }
+#summary, #edit-summary, #control-summary, #real-summary { min-height: 1.5em; }
+#motion-video video, #word-video video, #edit-video video, #control-video video, #real-video video {
+  object-fit: contain; }
 .video-caption { margin-bottom: -8px; }
 footer { display: none !important; }
 """
@@ -31,7 +36,8 @@ LICENCE_NOTE = ("The embedded model is trained on the Bandai-Namco Research Moti
 # api_name of every event, for API clients (gradio_client) and the docs.
 API_NAMES = ("generate", "attention", "attention_video", "attention_refresh", "length_mode", "load_example",
              "edit", "edit_files", "edit_attention", "edit_mode", "edit_words", "edit_length_mode", "load_edit_example",
-             "control", "control_task", "control_preview", "control_preview_refresh")
+             "control", "control_task", "control_preview", "control_preview_refresh",
+             "edit_real", "real_mode", "real_words", "real_clip", "real_upload")
 
 
 def _close_session(state) -> None:
@@ -47,9 +53,24 @@ def header_markdown(pipe) -> str:
             f"Motions up to {pipe.max_seconds:g} s at 20 fps · text encoder {encoder} · model `{model}`")
 
 
+def _clip_library(settings: Settings) -> ClipLibrary | None:
+    """The test clips of settings.clips, or None (and the tab says how to get some) when there are
+    none or the build cannot be read: a broken dataset must not keep the studio from starting."""
+    if settings.clips is None:
+        return None
+    try:
+        clips = ClipLibrary(settings.clips)
+    except (OSError, ValueError) as exc:
+        log.error("no test clips offered: %s", exc)
+        return None
+    log.info("%d test clips offered from %s", len(clips), settings.clips)
+    return clips if len(clips) else None
+
+
 def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
     """The full studio over a loaded pipeline."""
-    h = guard_all(Handlers(studio))
+    clips = _clip_library(settings)
+    h = guard_all(Handlers(studio, clips))
     ttl = settings.session_ttl_s
     with gr.Blocks(title=TITLE, delete_cache=(int(settings.prune_every_s), int(ttl))) as demo:
         state = gr.State(None, time_to_live=ttl, delete_callback=_close_session)
@@ -63,6 +84,8 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
                 ed = build_edit_panel(studio.pipe.max_seconds)
             with gr.Tab("Control", id="control", elem_id="control-tab"):
                 ctl = build_control_panel(studio.pipe.max_seconds, list_examples(studio.control_examples))
+            with gr.Tab("Real motion", id="real", elem_id="real-tab"):
+                real = build_real_panel(clips.choices() if clips else [])
         gr.Markdown(LICENCE_NOTE)
 
         gen.auto_length.input(h["length_mode"], gen.auto_length, gen.seconds, api_name="length_mode",
@@ -87,6 +110,7 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
                       preprocess=False, concurrency_id="views", trigger_mode="always_last")
         _wire_edit(h, ed, state, settings)
         _wire_control(h, ctl, generated, state, settings)
+        _wire_real(h, real, state, settings)
         demo.unload(h["unload"])
     return demo
 
@@ -129,6 +153,26 @@ def _wire_control(h: dict, ctl, generated, state, settings: Settings) -> None:
     gr.on([ctl.button.click], h["control"], inputs=ctl.inputs + [state],
           outputs=[state, ctl.video, ctl.top_view, ctl.summary, ctl.downloads], api_name="control", preprocess=False,
           concurrency_id="model", show_progress_on=[ctl.video], concurrency_limit=settings.concurrency,
+          trigger_mode="once")
+
+
+def _wire_real(h: dict, real, state, settings: Settings) -> None:
+    """The Real motion tab: controls follow the mode as in the Edit tab; a picked test clip fills
+    in its caption and replaces an upload (and an upload replaces the clip)."""
+    quick = dict(queue=False, show_progress="hidden", api_visibility="undocumented")
+    real.mode.change(h["real_mode"], [real.mode, real.mirror, real.source, real.target, real.reweight_word],
+                     [real.mode_help, real.target, real.mirror, real.reweight_word], api_name="real_mode",
+                     preprocess=False, **quick)
+    gr.on([real.source.change, real.target.change], h["edit_words"],
+          [real.source, real.mode, real.target, real.reweight_word], real.reweight_word, api_name="real_words",
+          preprocess=False, **quick)
+    # user actions only (.input / .upload): the updates these make must not set each other off
+    real.clip.input(h["real_clip"], real.clip, [real.source, real.upload], api_name="real_clip", preprocess=False,
+                    **quick)
+    real.upload.upload(h["real_upload"], None, real.clip, api_name="real_upload", **quick)
+    gr.on([real.button.click], h["edit_real"], inputs=real.inputs + [state],
+          outputs=[state, real.video, real.summary, real.downloads], api_name="edit_real", preprocess=False,
+          concurrency_id="model", show_progress_on=[real.video], concurrency_limit=settings.concurrency,
           trigger_mode="once")
 
 
