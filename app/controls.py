@@ -5,7 +5,6 @@ and checks uploads (which come from anyone) before they are read."""
 from __future__ import annotations
 
 import hashlib
-import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,8 +13,9 @@ import numpy as np
 
 from salad.motion import skeleton as sk
 from salad.motion.control import (
-    ControlSignal, keyframe_signal, lower_body_signal, make_signal, path_signal, read_mola_control,
+    ControlSignal, keyframe_signal, lower_body_signal, make_signal, preset_path, preset_polyline, read_mola_control,
 )
+from salad.motion.representation import FPS
 
 from .settings import MAX_UPLOAD_BYTES
 
@@ -27,7 +27,7 @@ TASKS = {                                   # value -> label
     "inbetween": "in-betweening from my last motion",
     "upper": "upper-body edit of my last motion",
 }
-PRESETS = {                                 # value -> label
+PRESETS = {                                 # value -> label; the shapes are salad.motion.control's
     "straight": "straight line",
     "circle": "circle (to the left)",
     "s-curve": "S-curve",
@@ -38,41 +38,15 @@ MAX_KEYFRAMES = 64
 NPY_MAGIC = b"\x93NUMPY"
 
 
-def _arc(centre_x: float, centre_z: float, radius: float, start: float, stop: float, n: int = 24) -> np.ndarray:
-    a = np.linspace(start, stop, n)
-    return np.stack([centre_x + radius * np.cos(a), centre_z + radius * np.sin(a)], -1)
-
-
-def _shape(preset: str) -> np.ndarray:
-    """The preset's (x, z) polyline at an arbitrary scale, starting at the origin heading +Z
-    (the character's facing; its left is +X)."""
-    if preset == "straight":
-        return np.array([[0.0, 0.0], [0.0, 1.0]])
-    if preset == "circle":
-        # centre to the character's left, so that the path leaves the origin heading +Z
-        return _arc(1.0, 0.0, 1.0, math.pi, -math.pi, 65)
-    if preset == "s-curve":
-        # a lane change to the left: it leaves and ends heading forward, bending one way then the other
-        u = np.linspace(0.0, 1.0, 65)
-        return np.stack([0.25 * (1.0 - np.cos(math.pi * u)), u], -1)
-    if preset in ("turn-left", "turn-right"):
-        r = 0.5
-        bend = _arc(r, 1.0, r, math.pi, math.pi / 2)               # a quarter turn towards +X
-        path = np.concatenate([[[0.0, 0.0]], bend, [[r + 1.0, 1.0 + r]]])
-        return path if preset == "turn-left" else path * [-1.0, 1.0]
-    raise ValueError(f"path must be one of {', '.join(PRESETS)}, got {preset!r}")
-
-
 def preset_points(preset: str, length_m: float) -> np.ndarray:
-    """(N, 2) x, z points of a preset path whose length is `length_m` metres."""
-    p = _shape(preset)
-    total = np.linalg.norm(np.diff(p, axis=0), axis=1).sum()
-    return p * (float(length_m) / total)
+    """(N, 2) x, z corner points of a preset path whose length is `length_m` metres."""
+    return preset_polyline(preset, length_m)
 
 
 def preset_signal(preset: str, frames: int, speed_mps: float, fps: float) -> ControlSignal:
     """The pelvis following a preset path at a constant speed over `frames` frames."""
-    return path_signal(preset_points(preset, speed_mps * (frames - 1) / fps), frames)
+    # preset_path counts frames at the library's 20 fps; scaling the speed keeps the metres per frame.
+    return preset_path(preset, frames, speed=float(speed_mps) * FPS / float(fps))
 
 
 # ------------------------------------------------------------------ uploads

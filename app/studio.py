@@ -7,6 +7,7 @@ from __future__ import annotations
 import re
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
@@ -24,6 +25,9 @@ from salad.files import atomic_write
 Progress = Callable[[str, int, int], None]   # (stage, done, total)
 # Words an edit may add or swap that carry no motion of their own ("a" -> "an" before an adjective).
 FUNCTION_WORDS = frozenset("a an the their his her its and or with to of in on at while as".split())
+# Motion files (NPY, NPZ, BVH) are written here while the video renders: the video is what
+# the user waits for, and the writes are mostly I/O and NumPy outside the GIL.
+_writer = ThreadPoolExecutor(max_workers=2, thread_name_prefix="salad-save")
 
 
 def _quiet(stage: str, done: int, total: int) -> None:
@@ -123,9 +127,10 @@ class Studio:
             req.prompt, seconds=req.seconds, seed=req.seed, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
             return_attention=True, progress=report))
         stem = file_stem(req)
-        files = save_motion(motion, folder, stem)
-        files["mp4"], timings["render_s"] = self._rendered(progress, lambda report: render_video(
+        saved = _writer.submit(save_motion, motion, folder, stem)
+        mp4, timings["render_s"] = self._rendered(progress, lambda report: render_video(
             motion.joints, folder / f"{stem}.mp4", fps=motion.fps, title=motion.text, progress=report))
+        files = {"mp4": mp4} | saved.result()
         result = Result(req, motion, folder, files, timings)
         session.add(result)
         return result
@@ -204,11 +209,13 @@ class Studio:
             sampler=req.sampler, tau=req.tau, reweight=dict(req.reweight) or None, mirror=req.mirror,
             self_inject=req.self_inject, progress=report))
         stem = file_stem(req)
-        files = save_motion(res.source, folder, f"{stem}_source", "source_")
-        files |= save_motion(res.edited, folder, f"{stem}_edited", "edited_")
-        files["mp4"], timings["render_s"] = self._rendered(progress, lambda report: render_side_by_side(
+        saved = [_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
+                 _writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
+        # An unchanged source (same prompt, seed, length, sampling) reuses its rendered panel.
+        mp4, timings["render_s"] = self._rendered(progress, lambda report: render_side_by_side(
             [res.source.joints, res.edited.joints], ["source", "edited"], folder / f"{stem}_side-by-side.mp4",
             fps=res.edited.fps, progress=report))
+        files = {"mp4": mp4} | saved[0].result() | saved[1].result()
         result = Result(req, res.edited, folder, files, timings, kind="edit", source=res.source)
         session.add(result)
         return result
@@ -301,15 +308,16 @@ class Studio:
             progress=report))
         n = motion.frames
         stem = file_stem(req)
-        files = save_motion(motion, folder, stem)
-        files["signal"] = _save_npz(folder / f"{stem}_control.npz", targets=signal.targets, mask=signal.mask,
-                                    fps=np.array(motion.fps))
+        saved = _writer.submit(save_motion, motion, folder, stem)
+        signal_file = _writer.submit(_save_npz, folder / f"{stem}_control.npz", targets=signal.targets,
+                                     mask=signal.mask, fps=np.array(motion.fps))
         # Free coordinates of a target take the motion's own value, so a pelvis path's markers
         # ride at pelvis height while its ribbon lies on the floor.
         shown = np.where(signal.mask[:n], signal.targets[:n], motion.joints)
-        files["mp4"], timings["render_s"] = self._rendered(progress, lambda report: render_video(
+        mp4, timings["render_s"] = self._rendered(progress, lambda report: render_video(
             motion.joints, folder / f"{stem}.mp4", fps=motion.fps, title=motion.text, targets=shown,
             target_mask=signal.joint_mask()[:n], trajectory=controls.pelvis_path(signal, n), progress=report))
+        files = {"mp4": mp4} | saved.result() | {"signal": signal_file.result()}
         result = Result(req, motion, folder, files, timings, kind="control", signal=signal)
         session.add(result)
         return result

@@ -105,6 +105,23 @@ def test_preset_path_shapes_and_errors():
         preset_points("line", 40, speed=-1.0)
 
 
+def test_studio_presets_are_the_library_presets():
+    from app.controls import PRESETS, preset_points as studio_points, preset_signal
+    from salad.motion.control import PATH_PRESETS, preset_name, preset_polyline
+
+    assert sorted(map(preset_name, PRESETS)) == sorted(PATH_PRESETS)
+    for name in PRESETS:
+        poly = studio_points(name, 3.0)
+        np.testing.assert_allclose(poly, preset_polyline(name, 3.0))
+        assert np.linalg.norm(np.diff(poly, axis=0), axis=1).sum() == pytest.approx(3.0)
+        np.testing.assert_allclose(preset_signal(name, 40, 1.2, FPS).targets, preset_path(name, 40, 1.2).targets)
+    # at another frame rate the path keeps its speed in metres per second
+    slow = preset_signal("straight", 41, 1.0, 10)
+    np.testing.assert_allclose(slow.targets[-1, 0, [0, 2]], [0.0, 4.0], atol=1e-6)
+    with pytest.raises(ValueError, match="length"):
+        preset_polyline("circle", 0.0)
+
+
 def test_parse_points():
     np.testing.assert_array_equal(parse_points("0,0; 0.5,1.5;0,3"), [[0, 0], [0.5, 1.5], [0, 3]])
     for bad in ("0,0", "0,0;1", "0,0;a,b", "0,0;1,2,3", "0,0;nan,1"):

@@ -137,6 +137,36 @@ def test_side_by_side(tmp_path, walk):
     assert held < 1.0 < moving
 
 
+def test_side_by_side_reuses_an_unchanged_panel(tmp_path, walk):
+    from salad.render import video
+
+    other = walk * np.array([-1.0, 1.0, 1.0], dtype=np.float32)      # the same walk, mirrored
+    video.panel_cache.clear()
+    fresh = render_side_by_side([walk, other], ["source", "edited"], tmp_path / "fresh.mp4", size=SIZE)
+    assert last_render_stats()["reused_panels"] == 0 and len(video.panel_cache) == 2
+    video.panel_cache.clear()
+    render_side_by_side([walk, walk[:20]], ["source", "edited"], tmp_path / "first.mp4", size=SIZE)
+    again = render_side_by_side([walk, other], ["source", "edited"], tmp_path / "again.mp4", size=SIZE)
+    assert last_render_stats()["reused_panels"] == 1, "the unchanged source panel is not drawn again"
+    assert again.read_bytes() == fresh.read_bytes(), "a reused panel looks exactly like a drawn one"
+    # A different label (or camera, size, motion) is a different panel.
+    render_side_by_side([walk, other], ["before", "edited"], tmp_path / "relabelled.mp4", size=SIZE)
+    assert last_render_stats()["reused_panels"] == 1
+    cache = video.PanelCache(limit_bytes=1000)
+    cache.put("big", np.zeros((10, 10, 10, 3), np.uint8))
+    assert cache.get("big") is None, "panels over the limit are not kept"
+
+
+def test_camera_zoom_snaps_outwards():
+    a = synthetic_walk(40)
+    b = a.copy()
+    b[:, 20, 0] += 0.01                                                # a hand moves a centimetre
+    ca, cb = cam.follow_camera([a], 20), cam.follow_camera([a, b], 20)
+    np.testing.assert_array_equal(ca[0].poses, cb[0].poses)
+    distance = np.linalg.norm(ca[0].eyes - ca[0].targets, axis=1)
+    assert np.allclose(distance / cam.DISTANCE_STEP, np.round(distance / cam.DISTANCE_STEP))
+
+
 def test_gif_and_frame_strip(tmp_path, walk):
     gif = save_gif(walk[:10], tmp_path / "walk.gif", size=(96, 96), stride=2)
     frames = imageio.mimread(gif)

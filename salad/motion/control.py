@@ -248,8 +248,16 @@ def parse_points(text: str) -> np.ndarray:
 
 
 PATH_PRESETS = ("line", "circle", "s-curve", "turn-left", "turn-right")
-_PRESET_ALIASES = {"straight": "line"}
+PRESET_ALIASES = {"straight": "line"}      # the studio's name for a line
 DEFAULT_WALK_SPEED = 1.0     # m/s
+
+
+def preset_name(name: str) -> str:
+    """The preset a name (or alias) stands for; ValueError for an unknown one."""
+    key = PRESET_ALIASES.get(name, name) if isinstance(name, str) else name
+    if key not in PATH_PRESETS:
+        raise ValueError(f"path preset must be one of {', '.join(PATH_PRESETS)}, got {name!r}")
+    return key
 
 
 def _arc(cx: float, cz: float, radius: float, start: float, stop: float, n: int) -> np.ndarray:
@@ -273,19 +281,23 @@ def _preset_shape(name: str) -> np.ndarray:
     raise AssertionError(name)
 
 
+def preset_polyline(name: str, length: float) -> np.ndarray:
+    """(N, 2) x, z corner points of a preset path scaled to `length` metres along it."""
+    if not isinstance(length, (int, float, np.floating)) or not math.isfinite(length) or length <= 0:
+        raise ValueError(f"a path's length must be a positive number of metres, got {length!r}")
+    p = _preset_shape(preset_name(name))
+    return p * (float(length) / np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
 def preset_points(name: str, frames: int, speed: float = DEFAULT_WALK_SPEED) -> np.ndarray:
     """(frames, 2) pelvis x, z of a preset path walked at `speed` m/s, one point per frame."""
-    key = _PRESET_ALIASES.get(name, name)
-    if key not in PATH_PRESETS:
-        raise ValueError(f"path preset must be one of {', '.join(PATH_PRESETS)}, got {name!r}")
+    key = preset_name(name)
     if not isinstance(frames, (int, np.integer)) or frames < 2:
         raise ValueError(f"a path needs at least 2 frames, got {frames!r}")
     if not isinstance(speed, (int, float)) or not math.isfinite(speed) or not 0 < speed <= 10:
         raise ValueError(f"speed must be in (0, 10] m/s, got {speed!r}")
-    p = _preset_shape(key)
+    p = preset_polyline(key, speed * (frames - 1) / FPS)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
-    scale = speed * (frames - 1) / FPS / s[-1]
-    p, s = p * scale, s * scale
     u = np.linspace(0.0, s[-1], frames)
     return np.stack([np.interp(u, s, p[:, 0]), np.interp(u, s, p[:, 1])], -1)
 

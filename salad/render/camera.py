@@ -19,6 +19,7 @@ YFOV_DEG = 38.0         # a moderate telephoto, like a real camera at 4-6 m
 FOLLOW_SIGMA_S = 0.6    # time constant of the follow, in seconds
 MIN_RADIUS = 1.05       # never zoom in past a standing adult's half height plus margin
 MARGIN = 1.12
+DISTANCE_STEP = 0.2     # metres; the zoom snaps outwards to these steps
 
 
 @dataclass(frozen=True)
@@ -111,5 +112,8 @@ def follow_camera(motions: list[np.ndarray], fps: float, aspect: float = 1.0,
         along = offsets @ view_dir
         need = np.maximum(np.abs(offsets @ right) / tan_h, np.abs(offsets @ cam_up) / tan_v)
         distance = max(distance, float((MARGIN * need + along).max()))
+    # Snapping keeps the camera (and so a rendered panel, see video.PanelCache) identical when
+    # a motion shown beside it changes a little, e.g. from one edit of a source to the next.
+    distance = float(np.ceil(distance / DISTANCE_STEP - 1e-9) * DISTANCE_STEP)
     return [CameraPath(poses=look_at(t + distance * view_dir, t), targets=t, yfov=yfov,
                        aspect=aspect) for t in targets]

@@ -3,11 +3,16 @@
 Frames are produced in blocks: vertex data for a block of frames is built by NumPy
 in one go, then each frame is one buffer update + draw + read-back, and the encoder
 (an ffmpeg subprocess fed through imageio) compresses in parallel on the other core.
+Side-by-side panels are kept once drawn (PanelCache), so the unchanged source of a
+series of edits is drawn only once.
 """
 from __future__ import annotations
 
+import hashlib
 import os
+import threading
 import time
+from collections import OrderedDict
 from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +34,8 @@ DEFAULT_SIZE = (448, 448)
 PANEL_SIZE = (384, 384)
 BLOCK = 24          # frames of vertex data built per NumPy pass
 MAX_FRAMES = 20 * 60 * 10
+X264_PRESET, X264_CRF = "ultrafast", 22   # encoding costs a third of superfast's; files ~1.5x larger
+PANEL_CACHE_BYTES = 256 * 2**20   # finished side-by-side panels kept for reuse
 _last_stats: dict = {}
 
 
@@ -126,6 +133,49 @@ def _check_out(path, suffixes: tuple[str, ...]) -> Path:
     return p
 
 
+# ------------------------------------------------------------------ panel reuse
+
+class PanelCache:
+    """Finished panels of side-by-side renders, (T, H, W, 3) uint8 each, keyed by everything
+    that decides their pixels (joints, camera path, size, label). Successive edits of one
+    source motion show the same source panel; drawing it once saves half of every later render."""
+
+    def __init__(self, limit_bytes: int = PANEL_CACHE_BYTES):
+        self.limit = int(limit_bytes)
+        self._items: OrderedDict[str, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+        self.hits = 0
+
+    def get(self, key: str) -> np.ndarray | None:
+        with self._lock:
+            frames = self._items.get(key)
+            if frames is not None:
+                self._items.move_to_end(key)
+                self.hits += 1
+            return frames
+
+    def put(self, key: str, frames: np.ndarray) -> None:
+        if frames.nbytes > self.limit:
+            return
+        frames.setflags(write=False)      # shared by later renders: nobody may draw on it
+        with self._lock:
+            self._items[key] = frames
+            self._items.move_to_end(key)
+            while sum(f.nbytes for f in self._items.values()) > self.limit:
+                self._items.popitem(last=False)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+            self.hits = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+panel_cache = PanelCache()
+
+
 # ------------------------------------------------------------------ one panel
 
 @dataclass
@@ -155,6 +205,18 @@ class _Panel:
     @property
     def n_frames(self) -> int:
         return len(self.joints)
+
+    def cache_key(self, size: tuple[int, int]) -> str | None:
+        """What decides this panel's pixels, hashed; None for panels with extras (tints,
+        targets, paths), which are drawn fresh."""
+        if self.tint is not None or self.targets is not None or self.trajectory is not None:
+            return None
+        h = hashlib.sha256()
+        for part in (np.ascontiguousarray(self.joints, np.float64), np.ascontiguousarray(self.camera.poses),
+                     np.array([self.camera.yfov, *size], np.float64)):
+            h.update(part.tobytes())
+        h.update(str(self.label).encode())
+        return h.hexdigest()
 
     def block(self, frames: np.ndarray) -> dict[str, np.ndarray]:
         """Vertex rows for frame indices `frames` (already clamped to this motion)."""
@@ -206,38 +268,57 @@ def _frames(panels: list[_Panel], size: tuple[int, int], fps: float, title: str 
             patches.append(overlay.legend_patch(w, h, p.cmap, p.tint_label))
         statics.append(patches)
     clock = overlay.Clock(w * len(panels), h, fps, total)
+    # Panels of a side-by-side render are kept and reused (see PanelCache); a single panel is
+    # one frame per draw anyway and carries the render's own title.
+    keys = [p.cache_key(size) if len(panels) > 1 else None for p in panels]
+    reused = [panel_cache.get(k) if k is not None else None for k in keys]
+    fresh = [np.empty((p.n_frames, h, w, 3), np.uint8) if k is not None and r is None else None
+             for p, k, r in zip(panels, keys, reused)]
     stats = {"frames": total, "panels": len(panels), "size": size, "geometry_s": 0.0, "draw_s": 0.0,
-             "backend": gl_backend()}
+             "reused_panels": sum(r is not None for r in reused), "backend": gl_backend()}
     started = time.perf_counter()
     with engine() as eng:
-        if len(panels) == 1:
-            panels[0].install(eng)
+        drawn = [i for i, r in enumerate(reused) if r is None]
+        if len(drawn) == 1:
+            panels[drawn[0]].install(eng)
         for start in range(0, total, BLOCK):
             ts = np.arange(start, min(start + BLOCK, total))
             t0 = time.perf_counter()
-            blocks = [p.block(np.minimum(ts, p.n_frames - 1)) for p in panels]
+            blocks = [p.block(np.minimum(ts, p.n_frames - 1)) if r is None else None
+                      for p, r in zip(panels, reused)]
             stats["geometry_s"] += time.perf_counter() - t0
             for i, t in enumerate(ts):
                 t0 = time.perf_counter()
                 views = []
-                for p, blk, patches in zip(panels, blocks, statics):
+                for p, blk, patches, old, new in zip(panels, blocks, statics, reused, fresh):
                     tp = min(t, p.n_frames - 1)
-                    if len(panels) > 1:
+                    done = old if old is not None else new if new is not None and t > tp else None
+                    if done is not None:          # reused, or holding its last frame
+                        views.append(done[tp])
+                        continue
+                    if len(drawn) > 1:
                         p.install(eng)
-                    img = eng.draw(size, p.camera.yfov, p.camera.poses[tp], p.floor_shift(tp),
-                                   {k: v[i] for k, v in blk.items()}).copy()
+                    drawn_img = eng.draw(size, p.camera.yfov, p.camera.poses[tp], p.floor_shift(tp),
+                                         {k: v[i] for k, v in blk.items()})
+                    if new is None:
+                        img = drawn_img.copy()
+                    else:
+                        img = new[tp]
+                        img[...] = drawn_img
                     for patch in patches:
                         patch.blend(img)
                     views.append(img)
-                if len(views) > 1:
-                    for v in views[1:]:
-                        v[:, :1] = (v[:, :1] * 0.55).astype(np.uint8)  # a thin seam between panels
                 frame = np.concatenate(views, axis=1) if len(views) > 1 else views[0]
+                for j in range(1, len(views)):
+                    frame[:, j * w] = (frame[:, j * w] * 0.55).astype(np.uint8)  # a thin seam between panels
                 clock.patch(int(t)).blend(frame)
                 stats["draw_s"] += time.perf_counter() - t0
                 yield frame
                 if progress is not None:
                     progress(int(t) + 1, total)
+    for k, new in zip(keys, fresh):
+        if new is not None:
+            panel_cache.put(k, new)
     stats["total_s"] = time.perf_counter() - started
     _last_stats.clear()
     _last_stats.update(stats)
@@ -329,7 +410,7 @@ def _encode(frames: Iterator[np.ndarray], out: Path, fps: float) -> None:
         writer = imageio.get_writer(
             tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
             quality=None, macro_block_size=2, ffmpeg_log_level="error",
-            output_params=["-preset", "superfast", "-crf", "20", "-movflags", "+faststart"])
+            output_params=["-preset", X264_PRESET, "-crf", str(X264_CRF), "-movflags", "+faststart"])
         try:
             for frame in frames:
                 writer.append_data(frame)
