@@ -52,7 +52,7 @@ class Settings:
     prune_every_s: float = 600
     tmp_dir: Path | None = None     # parent of the studio's private temp root
     threads: int | None = None      # torch threads; None keeps torch's default
-    bf16: bool = True
+    bf16: bool = False             # measured: fp32 is faster for the studio's one-motion requests
     control_examples: Path | None = None   # a folder of MoLA-style control .npy files offered in the Control tab
     clips: Path | None = None       # a dataset build (HumanML3D layout) whose test clips the Real motion tab offers
 
