@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 
+from conftest import BANDAI_SUBSET
 from salad.pipeline import EMBEDDED_MODEL, load_pipeline
 
 
@@ -36,3 +37,18 @@ def test_auto_length_follows_the_data_for_short_and_long_actions(pipe):
     walk = pipe.generate("a person walks forward and turns left", seed=0, steps=20, batch=4)
     short, long = np.mean([m.frames for m in raise_]), np.mean([m.frames for m in walk])
     assert short + 20 < long, f"hand raise {short / 20:.1f} s vs walk and turn {long / 20:.1f} s"
+
+
+def test_editing_a_real_walk_keeps_it_a_walk_or_makes_it_a_run(pipe, bandai_subset):
+    # The edited branch keeps plain guidance: with the source prompt as its negative prompt the
+    # edit was amplified by the CFG scale, so a mirrored walk stood still and a run became a dash.
+    walk = str(bandai_subset / f"{BANDAI_SUBSET[1]}.bvh")
+
+    def speed(m):
+        return float(np.linalg.norm(m.joints[-1, 0, [0, 2]] - m.joints[0, 0, [0, 2]])) / (m.frames / m.fps)
+
+    mirrored = pipe.edit_real(walk, "a person walks forward", mode="mirror", mirror="all", steps=10, trim=True)
+    assert speed(mirrored.source) > 0.5
+    assert 0.5 < speed(mirrored.edited) / speed(mirrored.source) < 2.0
+    run = pipe.edit_real(walk, "a person walks forward", "a person runs forward", mode="swap", steps=10, trim=True)
+    assert speed(run.source) * 1.3 < speed(run.edited) < 6.0      # faster than the walk, slower than a sprint

@@ -287,8 +287,11 @@ def edit_inverted(pipe, inv: Inversion, target_prompt: str | None = None, mode: 
     from .inversion import replay
 
     source_prompt, target_prompt, mirror = pipe.check_edit(inv.prompt, target_prompt, mode, reweight, mirror)
-    u = _uncond_prompt(inv)
-    text = pipe.encode_text([u, u, source_prompt, target_prompt])
+    # The source branch replays the inversion with its own unconditional row; the edited branch
+    # keeps plain guidance (empty prompt). With the source prompt as the edited branch's negative
+    # prompt, guidance multiplies the whole edit by the CFG scale: a mirrored walk stopped walking
+    # (6.9 -> 0.3 m) and walk -> run became a 5 m/s dash, where the empty prompt gives a run.
+    text = pipe.encode_text([_uncond_prompt(inv), "", source_prompt, target_prompt])
     frames = 4 * inv.latent_frames
     plan = build_edit(text, inv.steps, frames, mode, source_prompt, target_prompt, tau, reweight, mirror, self_inject)
     controller, store, params = plan.controller, plan.store, plan.params
