@@ -255,18 +255,18 @@ def test_a_path_control_shows_the_guided_motion_and_its_error(studio_url, page):
     assert not page.outside_requests, f"the page reached outside hosts: {page.outside_requests[:5]}"
 
 
-def test_a_real_motion_upload_is_mirrored_next_to_its_input(studio_url, page, tmp_path):
-    from salad.motion.bvh import save_bvh
+def test_a_real_motion_upload_is_mirrored_next_to_its_input(studio_url, page, bandai_subset, tmp_path):
+    import shutil
 
-    from conftest import synthetic_walk
+    from conftest import BANDAI_SUBSET
 
-    bvh = tmp_path / "walk.bvh"
-    save_bvh(bvh, synthetic_walk(61, seed=3), fps=20)
+    bvh = tmp_path / "wave-left-hand.bvh"              # a real capture: a left-hand wave
+    shutil.copy(bandai_subset / f"{BANDAI_SUBSET[2]}.bvh", bvh)
     page.goto(studio_url, wait_until="load")
     page.get_by_role("tab", name="Real motion").click()
     page.locator("#real-upload input[type=file]").set_input_files(str(bvh))
-    page.locator("#real-upload").get_by_text("walk.bvh").wait_for()
-    page.locator("#real-source textarea").fill("a person walks forward")
+    page.locator("#real-upload").get_by_text("wave-left-hand.bvh").wait_for()
+    page.locator("#real-source textarea").fill("a person waves their left hand")
     page.locator("#real-mode label", has_text="mirror").click()
     page.locator("#real-tab").get_by_text("Inversion and sampling", exact=True).click()
     set_slider(page, "#real-steps", STEPS)
@@ -277,7 +277,7 @@ def test_a_real_motion_upload_is_mirrored_next_to_its_input(studio_url, page, tm
     page.wait_for_function("() => { const v = document.querySelector('#real-video video');"
                            " return v && v.videoWidth > 0 && v.currentTime > 0.2; }")
     summary = page.locator("#real-summary").inner_text()
-    assert "Mirroring" in summary and "walk.bvh" in summary and "MPJPE" in summary
+    assert "Mirroring" in summary and "wave-left-hand.bvh" in summary and "MPJPE" in summary
     page.wait_for_function("() => document.querySelectorAll('#real-downloads a').length >= 4")
     shoot(page.locator("#real-tab"), "real-mirror.png")
     assert not page.outside_requests, f"the page reached outside hosts: {page.outside_requests[:5]}"
