@@ -64,10 +64,12 @@ def display_name(name) -> str:
     return safe or "the uploaded file"
 
 
-def upload_file(value, root: Path) -> Upload | None:
+def upload_file(value, root: Path, types: tuple[str, ...] = (".npy",),
+                expected: str = "a NumPy .npy file") -> Upload | None:
     """The uploaded file a request refers to: a Gradio file value ({"path", "orig_name", ...})
     or a path, which must lie in the studio's upload cache `root` (any other server path is
-    refused without saying whether it exists). None when nothing was uploaded."""
+    refused without saying whether it exists), with a name ending in one of `types` and a size
+    within the limit. None when nothing was uploaded; the content is checked by its reader."""
     if value is None or value == "" or value == []:
         return None
     if isinstance(value, list) and len(value) == 1:
@@ -89,12 +91,14 @@ def upload_file(value, root: Path) -> Upload | None:
         ok = False
     if not ok:
         raise ValueError(f"{shown}: the upload was not found on the server; upload the file again")
-    if not shown.lower().endswith(".npy"):
-        raise ValueError(f"{shown}: expected a NumPy .npy file")
+    if not shown.lower().endswith(types):
+        raise ValueError(f"{shown}: expected {expected}")
     size = path.stat().st_size
     if size > MAX_UPLOAD_BYTES:
         raise ValueError(f"{shown}: {size / 1e6:.1f} MB is more than the {MAX_UPLOAD_BYTES / 1e6:g} MB "
                          "an upload may have")
+    if size == 0:
+        raise ValueError(f"{shown}: the file is empty")
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     return Upload(path, shown, digest)
 

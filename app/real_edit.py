@@ -19,9 +19,9 @@ from salad.motion import skeleton as sk
 from salad.pipeline import MIN_AUTO_FRAMES
 
 from .compare import Difference, motion_difference
-from .controls import display_name, load_array
+from .controls import display_name, load_array, upload_file
 from .session import KEEP_RESULTS, Session
-from .settings import MAX_CLIPS, MAX_UPLOAD_BYTES, REAL_UPLOAD_TYPES
+from .settings import MAX_CLIPS, REAL_UPLOAD_TYPES
 from .studio import Progress, Studio, _quiet, slug
 from .validation import RealEditRequest
 
@@ -45,40 +45,10 @@ class RealInput:
 
 
 def upload_path(value, root: Path) -> tuple[Path, str] | None:
-    """(server path, name to show) of the uploaded file a request refers to, or None when nothing
-    was uploaded. The value is a Gradio file value ({"path", "orig_name", ...}) or a path, and must
-    lie in the studio's upload cache `root`: other server paths are refused without saying whether
-    they exist. The type (by name) and size are checked here, the content by read_upload."""
-    if value is None or value == "" or value == []:
-        return None
-    if isinstance(value, list) and len(value) == 1:
-        value = value[0]
-    if isinstance(value, dict):
-        raw, name = value.get("path"), value.get("orig_name") or value.get("path")
-    elif isinstance(value, str):
-        raw, name = value, value
-    else:
-        raise ValueError(f"the upload must be one file, got {type(value).__name__}")
-    if not isinstance(raw, str) or not raw:
-        raise ValueError("the upload carries no file; upload it again")
-    shown = display_name(name)
-    try:
-        path = Path(raw).resolve()
-        path.relative_to(Path(root).resolve())
-        found = path.is_file()
-    except (ValueError, OSError):
-        found = False
-    if not found:
-        raise ValueError(f"{shown}: the upload was not found on the server; upload the file again")
-    if not shown.lower().endswith(REAL_UPLOAD_TYPES):
-        raise ValueError(f"{shown}: expected a BVH file (.bvh) or a NumPy array (.npy)")
-    size = path.stat().st_size
-    if size > MAX_UPLOAD_BYTES:
-        raise ValueError(f"{shown}: {size / 1e6:.1f} MB is more than the {MAX_UPLOAD_BYTES / 1e6:g} MB "
-                         "an upload may have")
-    if size == 0:
-        raise ValueError(f"{shown}: the file is empty")
-    return path, shown
+    """(server path, name to show) of the uploaded motion a request refers to, or None when
+    nothing was uploaded; place, type and size are checked here, the content by read_upload."""
+    up = upload_file(value, root, REAL_UPLOAD_TYPES, "a BVH file (.bvh) or a NumPy array (.npy)")
+    return None if up is None else (up.path, up.name)
 
 
 def _check_length(name: str, frames: int, need: int) -> None:
