@@ -153,7 +153,7 @@ def bench(out: Path, models=("embedded", "paper"), batches=(1, 16), quick: bool 
                           "matmul_peak_gflop_s": peak},
               "motion": {"seconds": seconds, "cfg": 7.5}, "runs": runs}
     if "embedded" in models:
-        acc = _subprocess("solver_accuracy", model="embedded", bf16=True, seeds=2 if quick else 4)
+        acc = _subprocess("solver_accuracy", model="embedded", bf16=False, seeds=2 if quick else 4)
         report["solver_accuracy"] = acc
         k, matched = acc.get("dpm_steps_matching_ddim50"), True
         table = acc.get("error_vs_ddim250_m", {})
