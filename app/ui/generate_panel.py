@@ -54,7 +54,7 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
                 cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)",
                                 info="higher follows the text more closely")
                 sampler = gr.Radio(["ddim", "dpm"], value="ddim", label="Sampler",
-                                   info="DPM-Solver++ needs fewer steps (about 20)")
+                                   info="DPM-Solver++ at 30 steps matches DDIM at 50")
             button = gr.Button("Generate", variant="primary", elem_id="generate-button")
         with gr.Column(scale=3, min_width=360):
             with gr.Row(equal_height=True):
