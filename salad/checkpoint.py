@@ -19,6 +19,8 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from .files import ordinary_permissions
+
 FORMAT = "salad-checkpoint"
 VERSION = 1
 
@@ -64,8 +66,10 @@ def save_checkpoint(path: str | Path, kind: str, config: dict[str, Any],
                "files": files, "meta": meta or {}}
         (tmp / "config.json").write_text(json.dumps(doc, indent=2, sort_keys=True))
         for f in tmp.iterdir():
+            ordinary_permissions(f)
             with open(f, "rb") as fh:
                 os.fsync(fh.fileno())
+        ordinary_permissions(tmp)
         old = None
         if path.exists():
             old = path.parent / f".{path.name}.old-{os.getpid()}"

@@ -12,6 +12,11 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
+def ordinary_permissions(path: str | Path) -> None:
+    """Give a file or directory made by mkstemp/mkdtemp (0600/0700) the permissions a plain new one gets."""
+    os.chmod(path, (0o777 if Path(path).is_dir() else 0o666) & ~_UMASK)
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling of `path` (same suffix) to write; it replaces `path` only if
@@ -23,7 +28,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp = Path(name)
     try:
         yield tmp
-        os.chmod(tmp, 0o666 & ~_UMASK)
+        ordinary_permissions(tmp)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)

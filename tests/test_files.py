@@ -17,3 +17,15 @@ def test_atomic_writes_have_ordinary_permissions_and_leave_nothing_on_failure(tm
     with pytest.raises(RuntimeError):
         atomic_write(p, broken)
     assert p.read_text() == "ok\n" and sorted(x.name for x in p.parent.iterdir()) == ["report.md"]
+
+
+def test_checkpoints_have_ordinary_permissions(tmp_path):
+    import torch
+
+    from salad.checkpoint import save_checkpoint
+    umask = os.umask(0)
+    os.umask(umask)
+    ckpt = save_checkpoint(tmp_path / "ckpt", "test", {}, {"model": {"w": torch.zeros(2)}})
+    assert (ckpt.stat().st_mode & 0o777) == (0o777 & ~umask)
+    for f in ckpt.iterdir():
+        assert (f.stat().st_mode & 0o777) == (0o666 & ~umask), f.name
