@@ -159,6 +159,10 @@ def test_custom_mapping_file_and_uncaptioned_clips(tmp_path, walks):
     assert report["uncaptioned"] == ["w1.bvh", "w2.bvh", "w3.bvh"]
     assert (tmp_path / "b" / "texts" / "w1.txt").read_text() == ""
     assert [it.name for it in MotionDataset(tmp_path / "b", "train").items] == ["w0"]
+    # the VAE learns from the uncaptioned clips too
+    vae_data = MotionDataset(tmp_path / "b", "train", require_captions=False)
+    assert sorted(it.name for it in vae_data.items) == ["w0", "w1", "w2", "w3"]
+    assert {it.name: it.captions for it in vae_data.items}["w1"] == [""]
     mapping.write_text(json.dumps({k: v for k, v in names.items() if k != "head"}))
     with pytest.raises(BuildError, match=r"missing \['head'\]"):
         bb.build_bvh(src, tmp_path / "c", mapping=mapping, workers=1, progress=False)

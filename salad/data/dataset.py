@@ -82,7 +82,10 @@ class MotionDataset(Dataset):
     """
 
     def __init__(self, root: str | Path, split: str = "train", min_frames: int = 16, max_frames: int = 196,
-                 normalizer: Normalizer | None = None, random_crop: bool = True, limit: int | None = None):
+                 normalizer: Normalizer | None = None, random_crop: bool = True, limit: int | None = None,
+                 require_captions: bool = True):
+        """require_captions=False also keeps motions without a texts/ file (caption ""), for the
+        VAE, which learns from motion alone (`salad data build --allow-uncaptioned`)."""
         self.root = Path(root)
         if not (self.root / "new_joint_vecs").is_dir():
             raise DatasetError(f"{self.root}: not a HumanML3D-layout directory (no new_joint_vecs/)")
@@ -93,18 +96,20 @@ class MotionDataset(Dataset):
         for name in read_split(self.root, split)[:limit]:
             f = self.root / "new_joint_vecs" / f"{name}.npy"
             t = self.root / "texts" / f"{name}.txt"
-            if not f.is_file() or not t.is_file():
+            if not f.is_file() or (require_captions and not t.is_file()):
                 skipped += 1
                 continue
             feats = np.load(f).astype(np.float32)
             if feats.ndim != 2 or feats.shape[1] != self.normalizer.dim:
                 raise DatasetError(f"{f}: shape {feats.shape} does not match Mean.npy's {self.normalizer.dim} dims")
             whole, clips = [], {}
-            for cap in read_captions(t):
+            for cap in (read_captions(t) if t.is_file() else []):
                 if cap.start == 0.0 and cap.end == 0.0:
                     whole.append(cap.text)
                 else:
                     clips.setdefault((cap.start, cap.end), []).append(cap.text)
+            if not whole and not clips and not require_captions:
+                whole = [""]                  # an uncaptioned motion, whole
             if whole and len(feats) >= min_frames:
                 self.items.append(MotionItem(name, feats, whole))
             for (s, e), texts in clips.items():

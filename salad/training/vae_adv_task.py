@@ -83,7 +83,8 @@ class VAESANTask:
         self.sources = vae_latent_sources(cfg.vae)
         # the source VAE's statistics define its latent space, whatever the data directory holds
         self.dataset = dataset or MotionDataset(cfg.data.root, "train", min_frames=cfg.data.min_frames,
-                                                max_frames=10 ** 9, normalizer=self.normalizer)
+                                                max_frames=10 ** 9, normalizer=self.normalizer,
+                                                require_captions=False)
         if self.dataset.dim != self.normalizer.dim:
             raise ValueError(f"{cfg.data.root}: {self.dataset.dim}-d features, but the VAE {cfg.vae} "
                              f"expects {self.normalizer.dim}")

@@ -36,7 +36,7 @@ class VAETask:
     def __init__(self, cfg: VAETrainConfig, dataset: MotionDataset | None = None):
         self.cfg = cfg
         self.dataset = dataset or MotionDataset(cfg.data.root, "train", min_frames=cfg.data.min_frames,
-                                                max_frames=10 ** 9)
+                                                max_frames=10 ** 9, require_captions=False)
         self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang)
         torch.manual_seed(cfg.run.seed)
         self.model = VAETraining(MotionVAE(cfg.model))
