@@ -22,7 +22,7 @@ from .compare import Difference, motion_difference
 from .controls import display_name, load_array, upload_file
 from .session import KEEP_RESULTS, Session
 from .settings import MAX_CLIPS, REAL_UPLOAD_TYPES
-from .studio import Progress, Studio, _quiet, slug
+from .studio import Progress, Studio, quiet, slug
 from .validation import RealEditRequest
 
 log = logging.getLogger("salad.studio")
@@ -238,14 +238,14 @@ def _input_label(name: str, limit: int = 32) -> str:
 
 
 def edit_real(studio: Studio, session: Session, req: RealEditRequest, motion: RealInput,
-              progress: Progress = _quiet) -> RealResult:
+              progress: Progress = quiet) -> RealResult:
     """Invert and edit `motion` (under the model lock), save the edited motion (BVH, NPY joints
     and features) and render input, reconstruction and edit side by side."""
     from salad.render import render_side_by_side
 
     folder = _new_folder(session)
     try:
-        res, timings = studio._sample(req.steps, progress, lambda _report: studio.pipe.edit_real(
+        res, timings = studio.sample_locked(req.steps, progress, lambda _report: studio.pipe.edit_real(
             motion.motion, req.source, req.target, mode=req.mode, steps=req.steps, cfg=req.cfg, tau=req.tau,
             reweight=dict(req.reweight) or None, mirror=req.mirror, self_inject=req.self_inject,
             inversion=req.inversion, trim=True, progress=_stages(progress, req.steps)))
@@ -257,7 +257,7 @@ def edit_real(studio: Studio, session: Session, req: RealEditRequest, motion: Re
         # the input as it came, cut to the frames that were edited
         shown = motion.shown[:res.source.frames]
         labels = [_input_label(motion.name), "reconstruction", f"edited ({req.mode})"]
-        files["mp4"], timings["render_s"] = studio._rendered(progress, lambda report: render_side_by_side(
+        files["mp4"], timings["render_s"] = studio.rendered(progress, lambda report: render_side_by_side(
             [shown, res.source.joints, edited.joints], labels, folder / f"{stem}_side-by-side.mp4",
             fps=edited.fps, progress=report))
     except BaseException:

@@ -30,8 +30,8 @@ FUNCTION_WORDS = frozenset("a an the their his her its and or with to of in on a
 _writer = ThreadPoolExecutor(max_workers=2, thread_name_prefix="salad-save")
 
 
-def _quiet(stage: str, done: int, total: int) -> None:
-    pass
+def quiet(stage: str, done: int, total: int) -> None:
+    """A Progress that reports nowhere."""
 
 
 def slug(text: str, limit: int = 40) -> str:
@@ -98,7 +98,7 @@ class Studio:
         return Session(self.workspace.session_key(session_hash), folder)
 
     # ------------------------------------------------------------ generation
-    def _sample(self, steps: int, progress: Progress, run: Callable):
+    def sample_locked(self, steps: int, progress: Progress, run: Callable):
         """run(report) under the model lock -> (its value, {"wait_s", "sample_s"})."""
         t0 = time.perf_counter()
         if self._model_lock.locked():
@@ -109,12 +109,13 @@ class Studio:
         return value, {"wait_s": t1 - t0, "sample_s": time.perf_counter() - t1}
 
     @staticmethod
-    def _rendered(progress: Progress, render: Callable) -> tuple[Path, float]:
+    def rendered(progress: Progress, render: Callable) -> tuple[Path, float]:
+        """render(report) reporting as "rendering" -> (its path, seconds)."""
         t0 = time.perf_counter()
         path = render(lambda i, n: progress("rendering", i, n))
         return path, time.perf_counter() - t0
 
-    def generate(self, session: Session, req: GenerateRequest, progress: Progress = _quiet) -> Result:
+    def generate(self, session: Session, req: GenerateRequest, progress: Progress = quiet) -> Result:
         """Sample, save (NPY joints and features, NPZ, BVH) and render (MP4) one motion; it becomes
         the session's current one. An identical earlier request of the session is answered from its files."""
         from salad.render import render_video
@@ -123,12 +124,12 @@ class Studio:
         if reused is not None:
             return reused
         folder = session.new_folder()
-        motion, timings = self._sample(req.steps, progress, lambda report: self.pipe.generate(
+        motion, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.generate(
             req.prompt, seconds=req.seconds, seed=req.seed, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
             return_attention=True, progress=report))
         stem = file_stem(req)
         saved = _writer.submit(save_motion, motion, folder, stem)
-        mp4, timings["render_s"] = self._rendered(progress, lambda report: render_video(
+        mp4, timings["render_s"] = self.rendered(progress, lambda report: render_video(
             motion.joints, folder / f"{stem}.mp4", fps=motion.fps, title=motion.text, progress=report))
         files = {"mp4": mp4} | saved.result()
         result = Result(req, motion, folder, files, timings)
@@ -179,7 +180,7 @@ class Studio:
 
         return result.cached(("files", req.layers, req.steps), make)
 
-    def word_video(self, result: Result, req: AttentionRequest, progress: Progress = _quiet) -> Path:
+    def word_video(self, result: Result, req: AttentionRequest, progress: Progress = quiet) -> Path:
         """The skeleton video with joints tinted by one word's attention."""
         from salad.render import render_video
 
@@ -195,7 +196,7 @@ class Studio:
         return result.cached(("video", req.word, req.layers, req.steps), make)
 
     # ------------------------------------------------------------ editing
-    def edit(self, session: Session, req: EditRequest, progress: Progress = _quiet) -> Result:
+    def edit(self, session: Session, req: EditRequest, progress: Progress = quiet) -> Result:
         """Run one edit (source and edited branches in one batched sampling), save both motions
         and render them side by side; it becomes the session's latest edit."""
         from salad.render import render_side_by_side
@@ -204,7 +205,7 @@ class Studio:
         if reused is not None:
             return reused
         folder = session.new_folder()
-        res, timings = self._sample(req.steps, progress, lambda report: self.pipe.edit(
+        res, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.edit(
             req.source, req.target, mode=req.mode, seed=req.seed, seconds=req.seconds, steps=req.steps, cfg=req.cfg,
             sampler=req.sampler, tau=req.tau, reweight=dict(req.reweight) or None, mirror=req.mirror,
             self_inject=req.self_inject, progress=report))
@@ -212,7 +213,7 @@ class Studio:
         saved = [_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
                  _writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
         # An unchanged source (same prompt, seed, length, sampling) reuses its rendered panel.
-        mp4, timings["render_s"] = self._rendered(progress, lambda report: render_side_by_side(
+        mp4, timings["render_s"] = self.rendered(progress, lambda report: render_side_by_side(
             [res.source.joints, res.edited.joints], ["source", "edited"], folder / f"{stem}_side-by-side.mp4",
             fps=res.edited.fps, progress=report))
         files = {"mp4": mp4} | saved[0].result() | saved[1].result()
@@ -270,7 +271,7 @@ class Studio:
 
         return result.cached(("edit heatmaps", word), make)
 
-    def edit_downloads(self, result: Result, progress: Progress = _quiet) -> list[Path]:
+    def edit_downloads(self, result: Result, progress: Progress = quiet) -> list[Path]:
         """Every file of an edit: the side-by-side MP4, the edited motion's own MP4, BVH, NPY
         joints and features, NPZ per motion, and both attention maps as NPZ and PNG."""
         from salad.render import attention_png, render_video
@@ -294,7 +295,7 @@ class Studio:
         return result.cached(("edit downloads",), make)
 
     # ------------------------------------------------------------ guided control
-    def control(self, session: Session, req: ControlRequest, signal, progress: Progress = _quiet) -> Result:
+    def control(self, session: Session, req: ControlRequest, signal, progress: Progress = quiet) -> Result:
         """Sample a motion guided by `signal`, save it with its signal, and render it with the
         targets (and a path on the floor) drawn; it becomes the session's latest control result."""
         from salad.render import render_video
@@ -303,7 +304,7 @@ class Studio:
         if reused is not None:
             return reused
         folder = session.new_folder()
-        motion, timings = self._sample(req.steps, progress, lambda report: self.pipe.control(
+        motion, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.control(
             req.prompt, signal=signal, seed=req.seed, strength=req.strength, steps=req.steps, cfg=req.cfg,
             progress=report))
         n = motion.frames
@@ -314,7 +315,7 @@ class Studio:
         # Free coordinates of a target take the motion's own value, so a pelvis path's markers
         # ride at pelvis height while its ribbon lies on the floor.
         shown = np.where(signal.mask[:n], signal.targets[:n], motion.joints)
-        mp4, timings["render_s"] = self._rendered(progress, lambda report: render_video(
+        mp4, timings["render_s"] = self.rendered(progress, lambda report: render_video(
             motion.joints, folder / f"{stem}.mp4", fps=motion.fps, title=motion.text, targets=shown,
             target_mask=signal.joint_mask()[:n], trajectory=controls.pelvis_path(signal, n), progress=report))
         files = {"mp4": mp4} | saved.result() | {"signal": signal_file.result()}
