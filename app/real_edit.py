@@ -6,9 +6,7 @@ from __future__ import annotations
 import logging
 import re
 import shutil
-import time
-import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -19,14 +17,13 @@ from salad.motion import skeleton as sk
 from salad.pipeline import MIN_AUTO_FRAMES
 
 from .compare import Difference, motion_difference
-from .controls import display_name, load_array, upload_file
-from .session import KEEP_RESULTS, Session
+from .controls import Upload, display_name, load_array, upload_file
+from .session import Result, Session
 from .settings import MAX_CLIPS, REAL_UPLOAD_TYPES
 from .studio import Progress, Studio, quiet, slug
 from .validation import RealEditRequest
 
 log = logging.getLogger("salad.studio")
-FOLDER_PREFIX = "real-"
 CAPTION_CHARS = 90          # of a clip's caption in the picker
 
 
@@ -44,11 +41,10 @@ class RealInput:
     caption: str | None = None
 
 
-def upload_path(value, root: Path) -> tuple[Path, str] | None:
-    """(server path, name to show) of the uploaded motion a request refers to, or None when
+def upload_path(value, root: Path) -> Upload | None:
+    """The uploaded motion a request refers to (path, name to show, content digest), or None when
     nothing was uploaded; place, type and size are checked here, the content by read_upload."""
-    up = upload_file(value, root, REAL_UPLOAD_TYPES, "a BVH file (.bvh) or a NumPy array (.npy)")
-    return None if up is None else (up.path, up.name)
+    return upload_file(value, root, REAL_UPLOAD_TYPES, "a BVH file (.bvh) or a NumPy array (.npy)")
 
 
 def _check_length(name: str, frames: int, need: int) -> None:
@@ -167,34 +163,14 @@ class ClipLibrary:
 
 # ------------------------------------------------------------------ the edit
 
-@dataclass
-class RealResult:
-    """A finished real-motion edit: the input, the pipeline's EditResult (.source is the
-    reconstruction), its files and timings."""
+def reconstruction_error_m(result: Result) -> float:
+    """A real edit's reconstruction error against its input (pelvis-aligned MPJPE, as the model saw it)."""
+    return float(result.source.info["mpjpe_m"])
 
-    request: RealEditRequest
-    input: RealInput
-    edit: object                        # salad.pipeline.EditResult
-    folder: Path
-    files: dict[str, Path] = field(default_factory=dict)
-    timings: dict[str, float] = field(default_factory=dict)
 
-    @property
-    def reconstruction(self):
-        return self.edit.source
-
-    @property
-    def edited(self):
-        return self.edit.edited
-
-    @property
-    def mpjpe_m(self) -> float:
-        """The reconstruction's pelvis-aligned error against the input (as the model saw it)."""
-        return float(self.edit.source.info["mpjpe_m"])
-
-    @property
-    def difference(self) -> Difference:
-        return motion_difference(self.edit.source.joints, self.edit.edited.joints)
+def edit_difference(result: Result) -> Difference:
+    """Where a real edit changed the reconstruction."""
+    return result.cached(("difference",), lambda: motion_difference(result.source.joints, result.motion.joints))
 
 
 def _without_type(name: str) -> str:
@@ -204,22 +180,6 @@ def _without_type(name: str) -> str:
 def file_stem(req: RealEditRequest) -> str:
     """The input's name and what was done to it, safe as a file name."""
     return f"{slug(_without_type(req.input_name), 32) or 'motion'}_{req.mode}"
-
-
-def _new_folder(session: Session) -> Path:
-    # Real edits keep their own folders next to the session's other results; the name sorts by age.
-    session.folder.mkdir(parents=True, exist_ok=True)
-    d = session.folder / f"{FOLDER_PREFIX}{time.time_ns():020d}-{uuid.uuid4().hex[:8]}"
-    d.mkdir()
-    return d
-
-
-def _prune(session: Session, current: Path) -> None:
-    """Keep the current real edit's folder and the KEEP_RESULTS - 1 before it; a download of the
-    previous result may still be under way."""
-    older = sorted(d for d in session.folder.glob(f"{FOLDER_PREFIX}*") if d.name < current.name)
-    for d in older[:max(0, len(older) - (KEEP_RESULTS - 1))]:
-        shutil.rmtree(d, ignore_errors=True)
 
 
 def _stages(progress: Progress, steps: int):
@@ -238,12 +198,15 @@ def _input_label(name: str, limit: int = 32) -> str:
 
 
 def edit_real(studio: Studio, session: Session, req: RealEditRequest, motion: RealInput,
-              progress: Progress = quiet) -> RealResult:
+              progress: Progress = quiet) -> Result:
     """Invert and edit `motion` (under the model lock), save the edited motion (BVH, NPY joints
     and features) and render input, reconstruction and edit side by side."""
     from salad.render import render_side_by_side
 
-    folder = _new_folder(session)
+    reused = session.reuse("real", req)
+    if reused is not None:
+        return reused
+    folder = session.new_folder()
     try:
         res, timings = studio.sample_locked(req.steps, progress, lambda _report: studio.pipe.edit_real(
             motion.motion, req.source, req.target, mode=req.mode, steps=req.steps, cfg=req.cfg, tau=req.tau,
@@ -263,5 +226,7 @@ def edit_real(studio: Studio, session: Session, req: RealEditRequest, motion: Re
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    _prune(session, folder)
-    return RealResult(req, motion, res, folder, files, timings)
+    result = Result(req, res.edited, folder, files, timings, kind="real", source=res.source, given=motion,
+                    params=res.params)
+    session.add(result)
+    return result

@@ -1,5 +1,5 @@
 """What one session holds between requests: its latest results of each kind (generation,
-edit, guided control) and what was rendered from them."""
+edit, guided control, real-motion edit) and what was rendered from them."""
 from __future__ import annotations
 
 import shutil
@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 KEEP_RESULTS = 2        # the previous result's files stay while its downloads may still be fetched
 CACHE_ENTRIES = 48      # renders kept per result (word x aggregation combinations)
-KINDS = ("generate", "edit", "control")
+KINDS = ("generate", "edit", "control", "real")
 
 
 @dataclass
@@ -20,9 +20,11 @@ class Result:
     """One finished request: its motion(s), where its files live, and a cache of views rendered from it.
 
     kind "generate": `motion` with its attention; "edit": `motion` is the edited motion and
-    `source` the source one; "control": `motion` and the `signal` it was guided by."""
+    `source` the source one; "control": `motion` and the `signal` it was guided by; "real":
+    `motion` is the edited motion, `source` the reconstruction of the `given` input and
+    `params` the edit's settings and timings."""
 
-    request: Any                        # GenerateRequest | EditRequest | ControlRequest
+    request: Any                        # GenerateRequest | EditRequest | ControlRequest | RealEditRequest
     motion: Any                         # salad Motion
     folder: Path
     files: dict[str, Path] = field(default_factory=dict)
@@ -30,6 +32,8 @@ class Result:
     kind: str = "generate"
     source: Any = None                  # edit: the source Motion
     signal: Any = None                  # control: the ControlSignal
+    given: Any = None                   # real: the input (app.real_edit.RealInput)
+    params: dict[str, Any] = field(default_factory=dict)   # real: salad's EditResult.params
     id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
 
     def __post_init__(self):

@@ -288,6 +288,7 @@ def parse_control(pipe, prompt, task, preset, seconds, speed, upload, example, k
 class RealEditRequest:
     input_name: str                 # the uploaded file's name or the test clip's id
     input_kind: str                 # bvh | joints | features | clip
+    input_digest: str               # sha256 of the uploaded file, or the clip's id: equal inputs, equal requests
     source: str                     # describes the input
     target: str | None
     mode: str
@@ -315,18 +316,19 @@ def parse_real_edit(pipe, upload, clip, source, mode, target, reweight_word, rew
     if up is not None and picked:
         raise ValueError("give either an uploaded motion or a test clip, not both")
     if up is not None:
-        motion = real_edit.read_upload(*up)
+        motion, digest = real_edit.read_upload(up.path, up.name), up.digest
     elif picked:
         if clips is None:
             raise ValueError("no test clips are offered: start the studio with --clips DIR (a dataset build)")
         motion = clips.read(clip, pipe.canvas_frames)
+        digest = f"clip:{motion.name}"
     else:
         raise ValueError("upload a motion (.bvh, or .npy joints or features)"
                          + (" or pick a test clip" if clips is not None else ""))
     method = _choice("inversion", inversion, METHODS)
     ed = parse_edit(pipe, source, mode, target, None, reweight_word, reweight_scale, mirror, DEFAULT_SELF_INJECT,
                     True, None, 0, steps, cfg, "ddim")
-    req = RealEditRequest(input_name=motion.name, input_kind=motion.kind, source=ed.source, target=ed.target,
+    req = RealEditRequest(input_name=motion.name, input_kind=motion.kind, input_digest=digest, source=ed.source, target=ed.target,
                           mode=ed.mode, tau=ed.tau, reweight=ed.reweight, mirror=ed.mirror, self_inject=ed.self_inject,
                           inversion=method, steps=ed.steps, cfg=ed.cfg)
     return req, motion

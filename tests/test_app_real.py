@@ -237,8 +237,9 @@ def test_uploads_are_checked_before_they_are_read(tmp_path):
     root = tmp_path / "cache"
     root.mkdir()
     save_bvh(root / "walk.bvh", synthetic_walk(30), fps=20)
-    path, name = upload_path({"path": str(root / "walk.bvh"), "orig_name": "../My Walk?.bvh"}, root)
-    assert name == "My Walk_.bvh" and path == (root / "walk.bvh").resolve()
+    up = upload_path({"path": str(root / "walk.bvh"), "orig_name": "../My Walk?.bvh"}, root)
+    path, name = up.path, up.name
+    assert name == "My Walk_.bvh" and path == (root / "walk.bvh").resolve() and len(up.digest) == 64
     motion = read_upload(path, name)
     assert motion.kind == "bvh" and motion.shown.shape == (30, 22, 3) and motion.motion is motion.shown
     assert upload_path(None, root) is None and upload_path([], root) is None
@@ -259,3 +260,29 @@ def test_clips_setting_and_command_line(tiny_dataset, tmp_path):
     assert default_clips() in (None, DEFAULT_CLIPS)
     with pytest.raises(ValueError, match="not a dataset build .*lacks new_joint_vecs, texts, test.txt"):
         Settings(clips=tmp_path)
+
+
+def test_a_repeated_real_edit_is_answered_from_the_session(pipe, walk_bvh, tmp_path):
+    import dataclasses
+
+    from app import real_edit
+    from app.studio import Studio
+    from app.validation import parse_real_edit
+    from app.workspace import Workspace
+
+    studio = Studio(pipe, Workspace(tmp_path))
+    session = studio.session(None, "tab-1")
+    root = studio.workspace.gradio_cache
+    root.mkdir(parents=True, exist_ok=True)
+    upload = root / "walk.bvh"
+    upload.write_bytes(walk_bvh.read_bytes())
+    req, motion = parse_real_edit(pipe, str(upload), "", SOURCE, "mirror", "", "", 2.0, "all", "negative", STEPS, 7.5,
+                                  upload_root=root)
+    first = real_edit.edit_real(studio, session, req, motion)
+    again = real_edit.edit_real(studio, session, req, motion)
+    assert again is first and first.reused == 1 and first.intact()
+    assert session.latest("real") is first and first.kind == "real" and first.given is motion
+    # the same file name with other content is another request
+    other = dataclasses.replace(req, input_digest="0" * 64)
+    second = real_edit.edit_real(studio, session, other, motion)
+    assert second is not first and session.latest("real") is second

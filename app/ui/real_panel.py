@@ -10,7 +10,8 @@ import gradio as gr
 from salad.models.text import split_words
 from salad.pipeline import MAX_PROMPT_CHARS
 
-from ..real_edit import RealResult
+from ..real_edit import edit_difference, reconstruction_error_m
+from ..session import Result
 from ..settings import (
     DEFAULT_CFG, DEFAULT_REWEIGHT, DEFAULT_STEPS, MAX_CFG, MAX_REWEIGHT, MAX_STEPS, MAX_UPLOAD_BYTES,
 )
@@ -103,10 +104,10 @@ def build_real_panel(clip_choices: list[tuple[str, str]]) -> RealPanel:
                      inversion, steps, cfg, button, video, summary, downloads)
 
 
-def real_markdown(result: RealResult) -> str:
+def real_markdown(result: Result) -> str:
     """What was edited and how, the reconstruction's error, where the edit changed the motion,
     and how long each part took."""
-    r, rec, edited = result.request, result.reconstruction, result.edited
+    r, rec = result.request, result.source
     what = [f"**{MODE_NAMES[r.mode]}**"]
     weights = [f"{quoted(w)} × {s:g}" for w, s in r.reweight]
     if r.mode in ("swap", "refine"):
@@ -118,18 +119,18 @@ def real_markdown(result: RealResult) -> str:
     what += [f"re-weighted {w}" for w in weights]
     if r.mirror and r.mode != "mirror":
         what.append(f"mirrored {MIRROR_NAMES[r.mirror]}")
-    params = result.edit.params
+    params = result.params
     trimmed = params.get("trimmed_from_frames")
     length = f"{rec.seconds:.1f} s ({rec.frames} frames"
     length += f", the first of {trimmed} frames)" if trimmed else ")"
-    diff = result.difference
+    diff = edit_difference(result)
     part, change = diff.most_changed
     t = result.timings
     waited = f", waited {t['wait_s']:.1f} s" if t.get("wait_s", 0) > 0.5 else ""
     return (f"{' · '.join(what)} of {KIND_NAMES[r.input_kind]} {quoted(r.input_name)} described as "
             f"{quoted(r.source)}: {length}, {INVERSION_NAMES[r.inversion]} inversion, {r.steps} DDIM steps, "
             f"CFG {r.cfg:g}.  \n"
-            f"**Reconstruction error (MPJPE): {100 * result.mpjpe_m:.1f} cm** against the input. "
+            f"**Reconstruction error (MPJPE): {100 * reconstruction_error_m(result):.1f} cm** against the input. "
             f"Most changed by the edit: **{escape_md(part)}** ({100 * change:.0f} cm on average, pelvis-relative); "
             f"the pelvis path moved {100 * diff.root_change_m:.0f} cm on average.  \n"
             f"Inverted in {t['inversion_s']:.1f} s, edited in {t['edit_s']:.1f} s, "
