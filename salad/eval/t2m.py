@@ -105,7 +105,7 @@ def _as_dataset(dataset: MotionDataset | str | Path, split: str = "test") -> Mot
 
 def _load_state(path: Path | None, fingerprint: dict) -> dict:
     """Finished repeats of an earlier run with the same fingerprint (else none)."""
-    empty = {"fingerprint": fingerprint, "repeats": [], "generation_s": 0.0, "calls": 0}
+    empty = {"fingerprint": fingerprint, "repeats": []}
     if path is None or not path.exists():
         return empty
     try:
@@ -140,16 +140,17 @@ def evaluate_t2m(generate: Generator, dataset: MotionDataset | str | Path, evalu
                 "mm_pairs": mm_pairs, "seed": seed, "dataset": str(ds.root), "ground_truth": bool(is_real)}
     state_path = Path(state_file) if state_file is not None else None
     describe = getattr(generate, "describe", None)
-    state = _load_state(state_path, {"protocol": protocol, "generator": describe() if describe else None,
-                                     "motions": len(items)})
+    generator = describe() if describe else None
+    state = _load_state(state_path, {"protocol": protocol, "generator": generator, "motions": len(items)})
     done = state["repeats"][:repeats]
     values: dict[str, list[float]] = {m: [v[m] for v in done if m in v] for m in METRICS}
-    gen_time = state["generation_s"] if done else 0.0
+    gen_time = sum(v.get("generation_s", 0.0) for v in done)
     if done and hasattr(generate, "calls"):
-        generate.calls = state["calls"]          # the generator's seeds follow its call count
+        generate.calls = done[-1].get("calls", state.get("calls", 0))   # its seeds follow its call count
     if done and progress:
         print(f"resuming after {len(done)} finished repeats from {state_path}", flush=True)
     for r in range(len(done), repeats):
+        gen_before = gen_time
         rng = np.random.default_rng([seed, r])
         order = rng.permutation(len(items))[:n_batches * batch_size]
         captions = [items[i].captions[int(rng.integers(len(items[i].captions)))] for i in order]
@@ -184,8 +185,9 @@ def evaluate_t2m(generate: Generator, dataset: MotionDataset | str | Path, evalu
             gen_time += time.time() - t0
             values["MultiModality"].append(multimodality(np.stack(mm_emb), mm_pairs, rng))
         if state_path is not None:
-            state["repeats"] = state["repeats"][:r] + [{m: v[r] for m, v in values.items() if len(v) > r}]
-            state["generation_s"], state["calls"] = gen_time, getattr(generate, "calls", 0)
+            record = {m: v[r] for m, v in values.items() if len(v) > r}
+            record.update(generation_s=gen_time - gen_before, calls=getattr(generate, "calls", 0))
+            state["repeats"] = state["repeats"][:r] + [record]
             atomic_write_text(state_path, json.dumps(state))
         if progress:
             print(f"repeat {r + 1}/{repeats}: top1 {top[0]:.3f} FID {values['FID'][-1]:.4f} "
@@ -200,6 +202,7 @@ def evaluate_t2m(generate: Generator, dataset: MotionDataset | str | Path, evalu
         "reference": {"motions": len(items), "Diversity": diversity(reference, diversity_pairs,
                                                                     np.random.default_rng(seed))},
         "protocol": {"repeats": repeats, **protocol},
+        "generator": generator,
         "time_s": {"total": round(time.time() - t_start, 2), "generation": round(gen_time, 2)},
     }
 
@@ -255,9 +258,15 @@ def write_report(results: Mapping[str, Any], out_dir: str | Path, title: str = "
         "Embeddings are unit-norm, so distances lie in [0, 2]; numbers are not comparable with evaluators "
         "trained on other data or with unnormalised embeddings.",
     ]
-    if any(r.get("protocol", {}).get("mm_prompts") for r in rows.values()):
-        notes.append(f"MultiModality: {p.get('mm_prompts')} prompts × {p.get('mm_repeats')} generations, "
-                     f"{p.get('mm_pairs')} pairs per prompt.")
+    mm = next((r["protocol"] for r in rows.values() if r.get("protocol", {}).get("mm_prompts")), None)
+    if mm:
+        notes.append(f"MultiModality: {mm.get('mm_prompts')} prompts × {mm.get('mm_repeats')} generations, "
+                     f"{mm.get('mm_pairs')} pairs per prompt.")
+    for name, r in rows.items():
+        g = r.get("generator")
+        if g and "sampler" in g:
+            notes.append(f"{name}: {g['sampler']} sampler, {g['steps']} steps, CFG {g['cfg']:g}, "
+                         f"{'bf16' if g.get('bf16') else 'fp32'}, seed {g['seed']}.")
     path = out / "report.md"
     atomic_write_text(path, "\n".join(notes) + "\n")
     return path
