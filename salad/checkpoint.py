@@ -53,6 +53,12 @@ def save_checkpoint(path: str | Path, kind: str, config: dict[str, Any],
     """Write `parts` (name -> flat tensor dict) and a JSON description to directory `path`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    # leftovers of a writer killed mid-save: unfinished copies, and old copies once a new one is in place
+    stale = [*path.parent.glob(f".{path.name}.tmp-*")]
+    if path.exists():
+        stale += path.parent.glob(f".{path.name}.old-*")
+    for d in stale:
+        shutil.rmtree(d, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.tmp-"))
     try:
         files = {}

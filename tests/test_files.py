@@ -29,3 +29,13 @@ def test_checkpoints_have_ordinary_permissions(tmp_path):
     assert (ckpt.stat().st_mode & 0o777) == (0o777 & ~umask)
     for f in ckpt.iterdir():
         assert (f.stat().st_mode & 0o777) == (0o666 & ~umask), f.name
+
+
+def test_a_save_clears_what_a_killed_save_left(tmp_path):
+    import torch
+
+    from salad.checkpoint import save_checkpoint
+    (tmp_path / ".ckpt.tmp-dead").mkdir()                  # a writer killed before its rename
+    (tmp_path / ".other.tmp-dead").mkdir()                 # another checkpoint's: not ours to touch
+    save_checkpoint(tmp_path / "ckpt", "test", {}, {"model": {"w": torch.zeros(2)}})
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".other.tmp-dead", "ckpt"]
