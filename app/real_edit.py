@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 
-from salad.files import atomic_write
 from salad.motion import representation as rep
 from salad.motion import skeleton as sk
 from salad.pipeline import MIN_AUTO_FRAMES
@@ -20,7 +19,7 @@ from .compare import Difference, motion_difference
 from .controls import Upload, display_name, load_array, upload_file
 from .session import Result, Session
 from .settings import MAX_CLIPS, REAL_UPLOAD_TYPES
-from .studio import Progress, Studio, quiet, slug
+from .studio import Progress, Studio, file_writer, quiet, save_motion, slug
 from .validation import RealEditRequest
 
 log = logging.getLogger("salad.studio")
@@ -214,15 +213,14 @@ def edit_real(studio: Studio, session: Session, req: RealEditRequest, motion: Re
             inversion=req.inversion, trim=True, progress=_stages(progress, req.steps)))
         timings.update(inversion_s=float(res.params["inversion_seconds"]), edit_s=float(res.params["edit_seconds"]))
         stem, edited = file_stem(req), res.edited
-        files = {"bvh": edited.save(folder / f"{stem}_edited.bvh"), "npy": edited.save(folder / f"{stem}_edited.npy"),
-                 "features": atomic_write(folder / f"{stem}_edited_features.npy",
-                                          lambda f: np.save(f, edited.features.astype(np.float32)))}
+        saved = file_writer.submit(save_motion, edited, folder, f"{stem}_edited")
         # the input as it came, cut to the frames that were edited
         shown = motion.shown[:res.source.frames]
         labels = [_input_label(motion.name), "reconstruction", f"edited ({req.mode})"]
-        files["mp4"], timings["render_s"] = studio.rendered(progress, lambda report: render_side_by_side(
+        mp4, timings["render_s"] = studio.rendered(progress, lambda report: render_side_by_side(
             [shown, res.source.joints, edited.joints], labels, folder / f"{stem}_side-by-side.mp4",
             fps=edited.fps, progress=report))
+        files = {"mp4": mp4} | saved.result()
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise

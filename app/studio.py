@@ -27,7 +27,7 @@ Progress = Callable[[str, int, int], None]   # (stage, done, total)
 FUNCTION_WORDS = frozenset("a an the their his her its and or with to of in on at while as".split())
 # Motion files (NPY, NPZ, BVH) are written here while the video renders: the video is what
 # the user waits for, and the writes are mostly I/O and NumPy outside the GIL.
-_writer = ThreadPoolExecutor(max_workers=2, thread_name_prefix="salad-save")
+file_writer = ThreadPoolExecutor(max_workers=2, thread_name_prefix="salad-save")
 
 
 def quiet(stage: str, done: int, total: int) -> None:
@@ -128,7 +128,7 @@ class Studio:
             req.prompt, seconds=req.seconds, seed=req.seed, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
             return_attention=True, progress=report))
         stem = file_stem(req)
-        saved = _writer.submit(save_motion, motion, folder, stem)
+        saved = file_writer.submit(save_motion, motion, folder, stem)
         mp4, timings["render_s"] = self.rendered(progress, lambda report: render_video(
             motion.joints, folder / f"{stem}.mp4", fps=motion.fps, title=motion.text, progress=report))
         files = {"mp4": mp4} | saved.result()
@@ -210,8 +210,8 @@ class Studio:
             sampler=req.sampler, tau=req.tau, reweight=dict(req.reweight) or None, mirror=req.mirror,
             self_inject=req.self_inject, progress=report))
         stem = file_stem(req)
-        saved = [_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
-                 _writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
+        saved = [file_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
+                 file_writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
         # An unchanged source (same prompt, seed, length, sampling) reuses its rendered panel.
         mp4, timings["render_s"] = self.rendered(progress, lambda report: render_side_by_side(
             [res.source.joints, res.edited.joints], ["source", "edited"], folder / f"{stem}_side-by-side.mp4",
@@ -309,8 +309,8 @@ class Studio:
             progress=report))
         n = motion.frames
         stem = file_stem(req)
-        saved = _writer.submit(save_motion, motion, folder, stem)
-        signal_file = _writer.submit(_save_npz, folder / f"{stem}_control.npz", targets=signal.targets,
+        saved = file_writer.submit(save_motion, motion, folder, stem)
+        signal_file = file_writer.submit(_save_npz, folder / f"{stem}_control.npz", targets=signal.targets,
                                      mask=signal.mask, fps=np.array(motion.fps))
         # Free coordinates of a target take the motion's own value, so a pelvis path's markers
         # ride at pelvis height while its ribbon lies on the floor.
