@@ -48,11 +48,27 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def recover_checkpoint(path: str | Path) -> bool:
+    """Put back the previous copy if a save died between its two renames; -> whether `path` exists.
+
+    A save moves the old checkpoint aside before renaming the new one in, so a kill at that moment
+    leaves only `.NAME.old-PID`, which is still a whole checkpoint."""
+    path = Path(path)
+    if not path.exists():
+        olds = sorted(path.parent.glob(f".{path.name}.old-*"), key=lambda d: d.stat().st_mtime)
+        olds = [d for d in olds if (d / "config.json").is_file()]
+        if olds:
+            os.replace(olds[-1], path)
+            _fsync_dir(path.parent)
+    return path.exists()
+
+
 def save_checkpoint(path: str | Path, kind: str, config: dict[str, Any],
                     parts: dict[str, dict[str, torch.Tensor]], meta: dict[str, Any] | None = None) -> Path:
     """Write `parts` (name -> flat tensor dict) and a JSON description to directory `path`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    recover_checkpoint(path)
     # leftovers of a writer killed mid-save: unfinished copies, and old copies once a new one is in place
     stale = [*path.parent.glob(f".{path.name}.tmp-*")]
     if path.exists():
@@ -92,6 +108,7 @@ def save_checkpoint(path: str | Path, kind: str, config: dict[str, Any],
 
 def read_checkpoint_config(path: str | Path, kind: str | None = None) -> dict[str, Any]:
     path = Path(path)
+    recover_checkpoint(path)
     cfg_file = path / "config.json"
     if not path.is_dir():
         raise CheckpointError(f"{path}: not a checkpoint directory")

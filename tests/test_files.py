@@ -39,3 +39,28 @@ def test_a_save_clears_what_a_killed_save_left(tmp_path):
     (tmp_path / ".other.tmp-dead").mkdir()                 # another checkpoint's: not ours to touch
     save_checkpoint(tmp_path / "ckpt", "test", {}, {"model": {"w": torch.zeros(2)}})
     assert sorted(p.name for p in tmp_path.iterdir()) == [".other.tmp-dead", "ckpt"]
+
+
+def test_a_save_killed_between_its_renames_loses_nothing(tmp_path):
+    import torch
+
+    from salad.checkpoint import load_checkpoint, save_checkpoint
+    ckpt = save_checkpoint(tmp_path / "ckpt", "test", {}, {"model": {"w": torch.full((2,), 3.0)}})
+    ckpt.rename(tmp_path / ".ckpt.old-12345")              # the old copy moved aside, the new one never arrived
+    (tmp_path / ".ckpt.tmp-12345").mkdir()
+    doc, parts = load_checkpoint(tmp_path / "ckpt", kind="test")
+    assert parts["model"]["w"].tolist() == [3.0, 3.0]
+    save_checkpoint(tmp_path / "ckpt", "test", {}, {"model": {"w": torch.zeros(2)}})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt"]
+
+
+def test_training_resumes_from_the_copy_a_killed_save_moved_aside(tmp_path):
+    import torch
+
+    from salad.checkpoint import recover_checkpoint, save_checkpoint
+    assert not recover_checkpoint(tmp_path / "state")      # nothing to recover: a fresh run
+    save_checkpoint(tmp_path / "state", "test", {}, {"model": {"w": torch.zeros(2)}})
+    (tmp_path / "state").rename(tmp_path / ".state.old-7")
+    (tmp_path / ".state.old-8").mkdir()                    # an empty leftover is not a checkpoint
+    assert recover_checkpoint(tmp_path / "state")
+    assert (tmp_path / "state" / "config.json").is_file()

@@ -18,7 +18,7 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, save_checkpoint
+from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, recover_checkpoint, save_checkpoint
 from .configs import OptimConfig, RunConfig
 
 STATE_DIR = "state"
@@ -136,7 +136,7 @@ class Trainer:
 
     def try_resume(self) -> bool:
         path = self.out / STATE_DIR
-        if not path.exists():
+        if not recover_checkpoint(path):
             return False
         doc, parts = load_checkpoint(path, kind=f"{self.task.kind}-train-state")
         # Run settings (threads, logging, checkpoint cadence) may change between sessions, and
@@ -171,7 +171,7 @@ class Trainer:
     def init_weights(self, path: str | Path) -> None:
         """Warm start from an exported model (e.g. the shipped snapshot) when there is no
         training state to resume: weights only, fresh optimiser, step 0 of a new run."""
-        if (self.out / STATE_DIR).exists():
+        if recover_checkpoint(self.out / STATE_DIR):
             return
         self.task.load_weights(self.model, Path(path))
         if self.ema is not None:
