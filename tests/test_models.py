@@ -95,6 +95,43 @@ def test_controller_can_replace_maps():
     assert (changed - base).abs().max() > 1e-4
 
 
+def test_dropout_drops_p_keeps_the_expectation_and_follows_the_seed():
+    from salad.models.dropout import Dropout, dropout
+    x = torch.ones(400_000, dtype=torch.float32, requires_grad=True)
+    torch.manual_seed(3)
+    y = dropout(x, 0.1)
+    dropped = (y == 0).float().mean().item()
+    assert abs(dropped - 0.1) < 0.003                      # 400k samples: std of the fraction 0.0005
+    assert abs(y.mean().item() - 1.0) < 0.005
+    assert set(y.detach().unique().tolist()) == {0.0, y.max().item()}
+    y.sum().backward()
+    assert torch.equal(x.grad, y.detach())                 # gradient passes exactly where the value did
+    torch.manual_seed(3)
+    assert torch.equal(dropout(torch.ones(400_000), 0.1), y.detach())
+    assert (dropout(torch.ones(1000), 0.3).view(10, 100) == 0).any(dim=1).all()  # no chunk left undropped
+    for shape in [(7,), (3, 5, 2)]:                        # sizes that are not a multiple of 4
+        assert dropout(torch.ones(shape), 0.5).shape == shape
+    bf = dropout(torch.ones(10_000, dtype=torch.bfloat16), 0.2)
+    assert bf.dtype == torch.bfloat16 and abs((bf == 0).float().mean().item() - 0.2) < 0.03
+    m = Dropout(0.25).eval()
+    assert torch.equal(m(x.detach()), x.detach())
+    assert torch.equal(dropout(x.detach(), 0.0), x.detach()) and not dropout(x.detach(), 1.0).any()
+    with pytest.raises(ValueError, match="probability"):
+        Dropout(1.5)
+
+
+def test_denoiser_training_mode_uses_dropout_and_eval_mode_is_deterministic():
+    torch.manual_seed(0)
+    model = Denoiser(DenoiserConfig(dim=32, heads=2, ff_dim=64, layers=2, latent_dim=8, text_dim=16, dropout=0.2))
+    z, t = torch.randn(2, 6, 7, 8), torch.tensor([10, 500])
+    text = torch.randn(2, 4, 16)
+    model.train()
+    a, b = model(z, t, text), model(z, t, text)
+    assert not torch.allclose(a, b)
+    model.eval()
+    assert torch.equal(model(z, t, text), model(z, t, text))
+
+
 def test_x0_eps_v_conversions_are_exact():
     s = NoiseSchedule()
     g = torch.Generator().manual_seed(0)

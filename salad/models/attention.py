@@ -15,6 +15,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from .dropout import dropout
+
 TEMPORAL, SKELETAL, CROSS = "temporal", "skeletal", "cross"
 
 
@@ -67,15 +69,16 @@ class Attention(nn.Module):
         q, k, v = self._heads(self.to_q(x)), self._heads(self.to_k(context)), self._heads(self.to_v(context))
         mask = None if key_mask is None else key_mask[:, None, None, :]
         p_drop = self.dropout if self.training else 0.0
-        if self.controller is None:
-            out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p_drop)
-        else:
+        if self.controller is None and p_drop == 0.0:
+            out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+        else:   # explicit maps: a controller observes them, or training drops some (cheaply, see dropout.py)
             scores = (q @ k.transpose(-2, -1)) * (q.shape[-1] ** -0.5)
             if mask is not None:
                 scores = scores.masked_fill(~mask, float("-inf"))
             probs = scores.softmax(dim=-1)
-            probs = self.controller(AttentionCall(self.kind, self.layer, probs, *shape))
-            probs = F.dropout(probs, p_drop, self.training)
+            if self.controller is not None:
+                probs = self.controller(AttentionCall(self.kind, self.layer, probs, *shape))
+            probs = dropout(probs, p_drop)
             out = probs.to(v.dtype) @ v
         N, H, L, Dh = out.shape
         return self.to_out(out.transpose(1, 2).reshape(N, L, H * Dh))

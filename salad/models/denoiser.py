@@ -16,6 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .attention import CROSS, SKELETAL, TEMPORAL, Attention
+from .dropout import Dropout
 
 
 @dataclass
@@ -70,8 +71,8 @@ class STLayer(nn.Module):
             self.norm_c, self.norm_text = nn.LayerNorm(d), nn.LayerNorm(d)
             self.cross = Attention(d, c.heads, CROSS, dropout=c.dropout)
             self.film_c = FiLM(d)
-        self.ff = nn.Sequential(nn.Linear(d, c.ff_dim), nn.GELU(), nn.Dropout(c.dropout), nn.Linear(c.ff_dim, d))
-        self.drop = nn.Dropout(c.dropout)
+        self.ff = nn.Sequential(nn.Linear(d, c.ff_dim), nn.GELU(), Dropout(c.dropout), nn.Linear(c.ff_dim, d))
+        self.drop = Dropout(c.dropout)
         for attn in self.attentions():
             attn.layer = index
 
@@ -105,7 +106,7 @@ class Denoiser(nn.Module):
         self.input = nn.Sequential(nn.Linear(in_dim, d), nn.ReLU(), nn.Linear(d, d))
         self.part_embedding = nn.Parameter(torch.zeros(c.parts, d))
         nn.init.normal_(self.part_embedding, std=0.02)
-        self.pe_drop = nn.Dropout(c.dropout)
+        self.pe_drop = Dropout(c.dropout)
         self.time_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
         self.length_mode = nn.Embedding(2, d) if c.length_modes else None
         self.text_proj = nn.Linear(c.text_dim, d)
