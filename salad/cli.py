@@ -78,9 +78,10 @@ def _progress_bar(desc: str):
 
 
 def cmd_generate(a) -> int:
+    from .motion.motion import check_output_paths
     from .pipeline import load_pipeline
+    outs = check_output_paths(a.output)
     pipe = load_pipeline(a.model, bf16=not a.fp32)
-    outs = [Path(o) for o in a.output]
     bar, update = _progress_bar("sampling")
     motions = pipe.generate(a.prompt, seconds=a.seconds, seed=a.seed, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                             batch=a.batch, progress=update)
@@ -225,7 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_data_stats)
 
-    g = sub.add_parser("generate", help="text -> motion, saved as .npy/.npz/.bvh/.mp4/.gif")
+    g = sub.add_parser("generate", help="text -> motion, saved as .npy/.npz/.bvh/.mp4/.gif/.png")
     g.add_argument("prompt")
     g.add_argument("-o", "--output", action="append", required=True,
                    help="output file; repeat for several formats (e.g. -o walk.mp4 -o walk.bvh)")

@@ -8,9 +8,9 @@ from pathlib import Path
 from .motion.control import (PATH_PRESETS, ControlSignal, control_errors, crop_signal, lower_body_signal, parse_points,
                              path_signal, preset_path, read_keyframes, read_mola_control, read_motion_joints,
                              read_targets)
+from .motion.motion import check_output_paths
 from .motion.representation import FPS
 
-OUTPUT_TYPES = (".npy", ".npz", ".bvh", ".mp4", ".gif")
 DEFAULT_PATH_SECONDS = 5.0
 SOURCES = ("path", "path_preset", "mola", "targets", "keyframes", "lower_body_from")
 
@@ -30,7 +30,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     src.add_argument("--lower-body-from", metavar="MOTION", help="keep this motion's lower body (.npy/.npz/.bvh) "
                                                                  "and generate the upper body")
     c.add_argument("-o", "--output", action="append", required=True,
-                   help="output file (.npy/.npz/.bvh/.mp4/.gif); repeat for several formats")
+                   help="output file (.npy/.npz/.bvh/.mp4/.gif/.png); repeat for several formats")
     c.add_argument("--seconds", type=float, default=None,
                    help=f"length; paths default to {DEFAULT_PATH_SECONDS:g} s, files to their own length "
                         "(a shorter --seconds uses their first part)")
@@ -88,16 +88,6 @@ def signal_from_args(a) -> ControlSignal:
     return sig
 
 
-def check_outputs(outputs: list[str]) -> list[Path]:
-    paths = [Path(o) for o in outputs]
-    for p in paths:
-        if p.suffix.lower() not in OUTPUT_TYPES:
-            raise ValueError(f"{p}: unsupported output type {p.suffix or '(none)'!r}; use {', '.join(OUTPUT_TYPES)}")
-        if p.is_dir():
-            raise ValueError(f"{p}: is a directory; give a file name")
-    return paths
-
-
 def _error_line(m, sig: ControlSignal) -> str:
     e = control_errors(m.joints, sig)
     return (f"control error: mean {e.mean() * 100:.1f} cm, max {e.max() * 100:.1f} cm over {e.size} constrained "
@@ -109,7 +99,7 @@ def cmd_control(a) -> int:
     from .pipeline import load_pipeline
 
     sig = signal_from_args(a)
-    outs = check_outputs(a.output)
+    outs = check_output_paths(a.output)
     if a.path is not None and abs(sig.targets[0, 0, 0]) + abs(sig.targets[0, 0, 2]) > 0.05:
         print("note: generated motions start at the origin; this path starts "
               f"{math.hypot(sig.targets[0, 0, 0], sig.targets[0, 0, 2]):.2f} m away from it")

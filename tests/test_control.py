@@ -340,7 +340,8 @@ def _parser():
 
 
 def test_cli_argument_errors(tmp_path, capsys):
-    from salad.control_cli import check_outputs, signal_from_args
+    from salad.control_cli import signal_from_args
+    from salad.motion.motion import check_output_paths
     p = _parser()
     with pytest.raises(SystemExit):
         p.parse_args(["control", "a person walks", "-o", "x.npy"])                      # no control source
@@ -364,7 +365,7 @@ def test_cli_argument_errors(tmp_path, capsys):
     a = p.parse_args(["control", "a person walks", "--path-preset", "circle", "--seconds", "2", "-o", "x.npy"])
     assert signal_from_args(a).frames == 40
     with pytest.raises(ValueError, match="unsupported output type"):
-        check_outputs(["walk.fbx"])
+        check_output_paths(["walk.fbx"])
 
 
 def test_cli_control_writes_the_motion_and_prints_its_error(tiny_model, tmp_path, capsys):

@@ -210,6 +210,9 @@ def test_edit_real_command(tiny_model, tmp_path, capsys):
     with pytest.raises(ValueError, match="unsupported output"):
         _cli(add_parser, ["edit-real", str(inp), "--source", PROMPT, "--mode", "mirror", "-o", str(tmp_path / "x.txt"),
                           "--model", str(tiny_model)])
+    with pytest.raises(ValueError, match="--side-by-side; use .mp4"):
+        _cli(add_parser, ["edit-real", str(inp), "--source", PROMPT, "--mode", "mirror", "-o", str(out_npy),
+                          "--side-by-side", str(tmp_path / "sbs.gif"), "--model", str(tiny_model)])
 
 
 def _labelled_dataset(root: Path) -> Path:

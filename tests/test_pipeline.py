@@ -66,10 +66,19 @@ def test_end_of_motion_follows_activation():
 def test_cli_generate_writes_files(tiny_model, tmp_path):
     out = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "a person walks forward", "--model",
                           str(tiny_model), "--seconds", "1.0", "--steps", "3", "-o", str(tmp_path / "w.npy"),
-                          "-o", str(tmp_path / "w.bvh")], cwd=REPO, capture_output=True, text=True, timeout=300)
+                          "-o", str(tmp_path / "w.bvh"), "-o", str(tmp_path / "w.png")],
+                         cwd=REPO, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert np.load(tmp_path / "w.npy").shape == (20, 22, 3)
     assert (tmp_path / "w.bvh").read_text().startswith("HIERARCHY")
+    from PIL import Image
+    strip = Image.open(tmp_path / "w.png")
+    assert strip.height == 256 and strip.width == 6 * 256 + 5 * 2     # six frames with 2-pixel gaps
+    wrong = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "a person walks", "--model",
+                            str(tiny_model), "-o", str(tmp_path / "w2.npy"), "-o", str(tmp_path / "w.fbx")],
+                           cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert wrong.returncode == 2 and "unsupported output type '.fbx'" in wrong.stderr
+    assert not (tmp_path / "w2.npy").exists()                       # refused before sampling anything
     bad = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "", "--model", str(tiny_model),
                           "-o", str(tmp_path / "x.npy")], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2 and "empty" in bad.stderr

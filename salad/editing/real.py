@@ -39,7 +39,6 @@ if TYPE_CHECKING:
 # strongest edits; the fixed-point scheme matches its fidelity at about 3x the calls, null-text inversion costs
 # 13x and lands further away (1.96 cm), plain DDIM inversion misses by 7.4 cm.
 DEFAULT_INVERSION = "negative"
-OUTPUT_TYPES = (".bvh", ".npy", ".npz", ".mp4", ".gif")
 NUM_JOINTS, FEATURE_DIM = 22, 263
 # The training skeleton counts as matched when no bone differs by more than this (metres).
 BONE_TOLERANCE_M = 0.005
@@ -392,7 +391,7 @@ def add_parser(sub) -> None:
     p.add_argument("--target", default=None, help="target prompt (swap, refine)")
     p.add_argument("--mode", default="swap", help="swap, refine, reweight or mirror")
     p.add_argument("-o", "--output", action="append", required=True,
-                   help="edited motion: .bvh, .npy, .npz, .mp4 or .gif; repeat for several formats")
+                   help="edited motion: .bvh, .npy, .npz, .mp4, .gif or .png; repeat for several formats")
     p.add_argument("--reconstruction", action="append", default=[],
                    help="also write the unedited reconstruction (the source branch) here; repeatable")
     p.add_argument("--side-by-side", default=None, help="an MP4 of input, reconstruction and edit")
@@ -416,14 +415,13 @@ def add_parser(sub) -> None:
 
 def cmd_edit_real(a) -> int:
     from ..cli import _progress_bar
+    from ..motion.motion import check_output_paths
     from ..pipeline import load_pipeline
 
     reweight = parse_reweight(a.reweight)
-    for path in a.output + a.reconstruction + ([a.side_by_side] if a.side_by_side else []):
-        ext = Path(path).suffix.lower()
-        if ext not in OUTPUT_TYPES or (path == a.side_by_side and ext != ".mp4"):
-            raise ValueError(f"{path}: unsupported output type {ext!r}; use "
-                             f"{'.mp4' if path == a.side_by_side else ', '.join(OUTPUT_TYPES)}")
+    check_output_paths(a.output + a.reconstruction)
+    if a.side_by_side and Path(a.side_by_side).suffix.lower() != ".mp4":
+        raise ValueError(f"{a.side_by_side}: unsupported output type for --side-by-side; use .mp4")
     pipe = load_pipeline(a.model)
     pipe.check_edit(a.source, a.target, a.mode, reweight, a.mirror)
     steps, cfg, _, _ = pipe.check_sampling(a.steps, a.cfg, "ddim")

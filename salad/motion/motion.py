@@ -10,6 +10,19 @@ import numpy as np
 from .representation import FPS
 from ..files import atomic_write
 
+OUTPUT_TYPES = (".npy", ".npz", ".bvh", ".mp4", ".gif", ".png")
+
+
+def check_output_paths(outputs) -> list[Path]:
+    """Output files Motion.save can write, checked before any work is done."""
+    paths = [Path(o) for o in outputs]
+    for p in paths:
+        if p.suffix.lower() not in OUTPUT_TYPES:
+            raise ValueError(f"{p}: unsupported output type {p.suffix or '(none)'!r}; use {', '.join(OUTPUT_TYPES)}")
+        if p.is_dir():
+            raise ValueError(f"{p}: is a directory; give a file name")
+    return paths
+
 
 @dataclass
 class Motion:
@@ -32,7 +45,8 @@ class Motion:
         return self.frames / self.fps
 
     def save(self, path: str | Path) -> Path:
-        """Write by extension: .npy (joints), .npz (joints + features), .bvh, .mp4, .gif."""
+        """Write by extension: .npy (joints), .npz (joints + features), .bvh, .mp4, .gif, or .png
+        (six evenly spaced frames side by side, for documents)."""
         path = Path(path)
         ext = path.suffix.lower()
         if ext == ".npy":
@@ -49,8 +63,11 @@ class Motion:
         elif ext == ".gif":
             from ..render import save_gif
             save_gif(self.joints, path, fps=self.fps, title=self.text or None)
+        elif ext == ".png":
+            from ..render import save_frame_strip
+            save_frame_strip(self.joints, path, fps=self.fps, title=self.text or None)
         else:
-            raise ValueError(f"{path}: unsupported output type {ext!r}; use .npy, .npz, .bvh, .mp4 or .gif")
+            check_output_paths([path])
         return path
 
 
