@@ -47,19 +47,15 @@ def file_stem(req) -> str:
     return f"{slug(req.prompt) or 'motion'}_seed{req.seed}"
 
 
-def _atomic_save(path: Path, write) -> Path:
-    return atomic_write(path, write)
-
-
 def _save_npz(path: Path, **arrays) -> Path:
-    return _atomic_save(path, lambda f: np.savez(f, **arrays))
+    return atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
 def save_motion(motion, folder: Path, stem: str, prefix: str = "") -> dict[str, Path]:
     """NPY joints, NPY features, NPZ (both) and BVH of a motion; keys carry `prefix`."""
     files = {f"{prefix}{ext}": motion.save(folder / f"{stem}.{ext}") for ext in ("npy", "npz", "bvh")}
-    files[f"{prefix}features"] = _atomic_save(folder / f"{stem}_features.npy",
-                                              lambda f: np.save(f, motion.features.astype(np.float32)))
+    files[f"{prefix}features"] = atomic_write(folder / f"{stem}_features.npy",
+                                             lambda f: np.save(f, motion.features.astype(np.float32)))
     return files
 
 
