@@ -66,15 +66,29 @@ def cmd_data_stats(a) -> int:
     return 0
 
 
-def _progress_bar(desc: str):
-    from tqdm import tqdm
-    bar = tqdm(total=1, desc=desc, leave=False)
+class _LazyBar:
+    """A tqdm bar that appears at the first progress report, so an argument error raised
+    before any work is printed on a clean line instead of after an empty bar."""
 
-    def update(i: int, n: int) -> None:
-        bar.total = n
-        bar.n = i
-        bar.refresh()
-    return bar, update
+    def __init__(self, desc: str):
+        self.desc, self.bar = desc, None
+
+    def update(self, i: int, n: int) -> None:
+        if self.bar is None:
+            from tqdm import tqdm
+            self.bar = tqdm(total=n, desc=self.desc, leave=False)
+        self.bar.total = n
+        self.bar.n = i
+        self.bar.refresh()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _progress_bar(desc: str):
+    bar = _LazyBar(desc)
+    return bar, bar.update
 
 
 def cmd_generate(a) -> int:

@@ -82,6 +82,10 @@ def test_cli_generate_writes_files(tiny_model, tmp_path):
     bad = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "", "--model", str(tiny_model),
                           "-o", str(tmp_path / "x.npy")], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2 and "empty" in bad.stderr
+    long = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "a person walks", "--model", str(tiny_model),
+                           "--seconds", "100", "-o", str(tmp_path / "x.npy")], cwd=REPO, capture_output=True, text=True,
+                          timeout=300)
+    assert long.returncode == 2 and long.stderr.startswith("salad: error: seconds must be between")  # no bar before it
 
 
 def test_generate_batch_with_mixed_lengths(tiny_model):
