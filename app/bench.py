@@ -40,12 +40,28 @@ def _timed(call) -> float:
     return time.perf_counter() - t
 
 
+def remove_download_leftovers(since: float) -> int:
+    """gradio_client downloads each file through a fresh `<tmp>/<40 hex>` folder and moves the
+    file on, leaving the folder behind; remove the empty ones made since `since` (time.time())."""
+    removed = 0
+    for d in Path(tempfile.gettempdir()).iterdir():
+        try:
+            if (len(d.name) == 40 and all(c in "0123456789abcdef" for c in d.name) and d.is_dir()
+                    and d.stat().st_mtime >= since - 1 and not any(d.iterdir())):
+                d.rmdir()
+                removed += 1
+        except OSError:          # gone already, or filled meanwhile: not ours to touch
+            pass
+    return removed
+
+
 def run(model: str | None, steps: int, sampler: str, bf16: bool, threads: int | None) -> dict:
     from gradio_client import Client
 
     from .server import create_app, launch
     from .settings import Settings
 
+    started = time.time()
     with tempfile.TemporaryDirectory() as tmp:
         settings = Settings(model=model, port=_free_port(), tmp_dir=Path(tmp), bf16=bf16, threads=threads)
         studio_app = create_app(settings)
@@ -67,6 +83,7 @@ def run(model: str | None, steps: int, sampler: str, bf16: bool, threads: int | 
             again = [_timed(lambda e=e, i=i: edit(*e, 10 + i)) for i, e in enumerate(EDITS_AGAIN)]
         finally:
             studio_app.close()
+            remove_download_leftovers(started)
     return {"settings": {"model": model or "embedded", "steps": steps, "sampler": sampler, "bf16": bf16,
                          "threads": threads},
             "generate_s": gen, "edit_first_s": first, "edit_same_source_s": again,

@@ -175,6 +175,18 @@ def serve_studio(pipe, tmp_dir: Path, **settings):
         studio_app.close()
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _no_client_download_leftovers():
+    """gradio_client leaves an empty temp folder per downloaded file; the suite cleans up after itself."""
+    import time
+
+    from app.bench import remove_download_leftovers
+
+    started = time.time()
+    yield
+    remove_download_leftovers(started)
+
+
 @pytest.fixture
 def client(server, tmp_path):
     """An API client of the test module's `server` fixture, downloading into tmp_path."""

@@ -8,3 +8,23 @@ def test_studio_latency_bench_times_every_request(tiny_model):
         assert report[key] and all(t > 0 for t in report[key]), key
     table = format_table(report)
     assert "generate → video" in table and "edit again, same source" in table
+
+
+def test_download_leftovers_are_removed_only_when_empty_recent_and_named_like_them(tmp_path, monkeypatch):
+    import os
+    import tempfile
+    import time
+
+    from app.bench import remove_download_leftovers
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    started = time.time()
+    leftover = tmp_path / ("ab" * 20)
+    full = tmp_path / ("cd" * 20)
+    old = tmp_path / ("ef" * 20)
+    other = tmp_path / "not-a-hash"
+    for d in (leftover, full, old, other):
+        d.mkdir()
+    (full / "x.mp4").write_bytes(b"1")
+    os.utime(old, (started - 3600, started - 3600))
+    assert remove_download_leftovers(started) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([full.name, old.name, other.name])
