@@ -170,3 +170,32 @@ def test_init_from_an_exported_model_warm_starts(tiny_dataset, tmp_path):
     for k, v in vae.state_dict().items():
         assert torch.equal(trainer.model.vae.state_dict()[k], v), k
     assert trainer.step_count == 0
+
+
+def test_denoiser_batches_are_the_same_whether_posteriors_are_cached_or_not(tiny_model, tiny_dataset, tmp_path):
+    from salad.diffusion.schedule import DiffusionConfig
+    from salad.models.denoiser import DenoiserConfig
+    from salad.training.configs import DenoiserTrainConfig
+    from salad.training.denoiser_task import DenoiserTask
+
+    cfg = DenoiserTrainConfig(
+        data=DataConfig(root=str(tiny_dataset), max_frames=80),      # the 72-frame motions fit this canvas
+        model=DenoiserConfig(latent_dim=8, dim=32, heads=4, ff_dim=64, layers=3, text_dim=384),
+        diffusion=DiffusionConfig(), optim=OptimConfig(batch_size=4),
+        run=RunConfig(out_dir=str(tmp_path / "run")), vae=str(tiny_model / "vae"))
+    warm, cold = DenoiserTask(cfg, show_progress=False), DenoiserTask(cfg, show_progress=False)
+    for auto in (0.0, 1.0):
+        cfg.auto_length_prob = auto
+        for _ in range(5):
+            warm.batch(np.random.default_rng(7))
+        assert warm._posteriors
+        torch.manual_seed(3)
+        a = warm.batch(np.random.default_rng(1))
+        torch.manual_seed(3)
+        b = cold.batch(np.random.default_rng(1))
+        assert torch.allclose(a["latents"], b["latents"], atol=1e-5)
+        cold._posteriors.clear()
+    i, (mu, logvar) = next(iter(warm._posteriors.items()))
+    f = warm.dataset.items[i].features
+    fresh, _ = warm.vae.encode(*warm._canvas([warm.normalizer.normalize(f[: len(f) // 4 * 4])], warm.canvas))
+    assert mu.shape == fresh[0].shape and torch.allclose(mu, fresh[0], atol=1e-5)

@@ -3,8 +3,9 @@
 Each batch is either "fixed length" (motions of their own length, padded and masked
 in time) or "auto length" (every motion on the full canvas, followed by VAE-encoded
 padding whose activation channel is 0), chosen per batch. One model thus learns both
-to fill a requested duration and to decide a duration itself (MoLA). Latents come from
-the frozen VAE on the fly, so every random crop gets its own encoding.
+to fill a requested duration and to decide a duration itself (MoLA). Latents are samples
+of the frozen VAE's posterior: encoded at first use for motions that fit the canvas, at
+every use for random windows of longer ones.
 """
 from __future__ import annotations
 
@@ -64,6 +65,10 @@ class DenoiserTask:
                                      normalizer=self.normalizer)
         self.canvas = (d.max_frames // 4) * 4
         self._by_length = np.argsort([min(len(it.features), self.canvas) for it in self.dataset.items], kind="stable")
+        # VAE posteriors (mean, log-variance) over the canvas of motions that fit it, kept from
+        # their first draw: the encoder is frozen and their input never changes, and the batched
+        # encode was ~15% of a step. Longer motions get a random window, encoded each time.
+        self._posteriors: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self.text_encoder = load_text_encoder(cfg.text_encoder)
         if cfg.model.text_dim != self.text_encoder.dim:
             raise ValueError(f"model.text_dim is {cfg.model.text_dim} but the {self.text_encoder.name} "
@@ -75,11 +80,13 @@ class DenoiserTask:
         self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule)
 
     # ------------------------------------------------------------ batches
-    @torch.no_grad()
-    def encode(self, feats: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
-        mu, logvar = self.vae.encode(feats, act)
-        z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
-        return z * self.latent_scale
+    def _canvas(self, crops: list[np.ndarray], T: int) -> tuple[torch.Tensor, torch.Tensor]:
+        feats = torch.zeros(len(crops), T, self.dataset.dim)
+        act = torch.zeros(len(crops), T)
+        for b, c in enumerate(crops):
+            feats[b, :len(c)] = torch.from_numpy(c)
+            act[b, :len(c)] = 1.0
+        return feats, act
 
     def _crop(self, feats: np.ndarray, rng: np.random.Generator, max_len: int) -> np.ndarray:
         if len(feats) > max_len:
@@ -99,17 +106,26 @@ class DenoiserTask:
             start = int(rng.integers(0, len(self._by_length) - span + 1))
             idx = self._by_length[start + rng.integers(0, span, size=B)]
         items = [self.dataset.items[i] for i in idx]
-        crops = [self.normalizer.normalize(self._crop(it.features, rng, self.canvas)) for it in items]
-        # One batched encode: every motion is followed by padding with activation 0, the
-        # way the VAE saw motion ends in training. Fixed-length rows then keep only their
-        # own latent frames (masked in time); auto-length rows keep the whole canvas.
+        # Every motion is encoded followed by padding with activation 0 (the way the VAE saw
+        # motion ends in training) on the whole canvas; fixed-length rows then keep only their
+        # own latent frames (masked in time), auto-length rows keep the whole canvas.
+        fits = [len(it.features) <= self.canvas for it in items]
+        crops = [it.features[: (len(it.features) // 4) * 4] if ok else self._crop(it.features, rng, self.canvas)
+                 for it, ok in zip(items, fits)]
         T = self.canvas if auto else max(len(c) for c in crops)
-        feats = torch.zeros(B, T, self.dataset.dim)
-        act = torch.zeros(B, T)
-        for b, c in enumerate(crops):
-            feats[b, :len(c)] = torch.from_numpy(c)
-            act[b, :len(c)] = 1.0
-        latents = self.encode(feats, act)
+        posterior = {b: self._posteriors[int(i)] for b, i in enumerate(idx) if int(i) in self._posteriors}
+        todo = [b for b in range(B) if b not in posterior]
+        if todo:
+            with torch.no_grad():
+                mu, logvar = self.vae.encode(
+                    *self._canvas([self.normalizer.normalize(crops[b]) for b in todo], self.canvas))
+            for k, b in enumerate(todo):
+                posterior[b] = (mu[k].clone(), logvar[k].clone())
+                if fits[b]:
+                    self._posteriors[int(idx[b])] = posterior[b]
+        mu = torch.stack([posterior[b][0] for b in range(B)])
+        logvar = torch.stack([posterior[b][1] for b in range(B)])
+        latents = ((mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)) * self.latent_scale)[:, : T // 4]
         if auto:
             frame_mask = None
         else:
