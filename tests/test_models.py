@@ -116,6 +116,7 @@ def test_dropout_drops_p_keeps_the_expectation_and_follows_the_seed():
     m = Dropout(0.25).eval()
     assert torch.equal(m(x.detach()), x.detach())
     assert torch.equal(dropout(x.detach(), 0.0), x.detach()) and not dropout(x.detach(), 1.0).any()
+    assert not dropout(x.detach(), 0.999999).any()         # rounds to "drop all", not a division by zero
     with pytest.raises(ValueError, match="probability"):
         Dropout(1.5)
 
