@@ -123,12 +123,16 @@ log_every = 1
     reached = log[-1]["step"]
     saved = json.loads(state.read_text())["meta"]["step"]
     assert reached - saved < 5 + 1, "at most one checkpoint interval is lost"
+    with open(tmp_path / "run" / "log.jsonl", "a") as f:
+        f.write('{"step": 99, "lo')                       # a row torn by the kill
     done = subprocess.run(cmd + ["--max-steps", str(saved + 3)], cwd=REPO, capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert f"resumed {tmp_path / 'run'} at step {saved}" in done.stderr
     _, _, _, doc = load_vae(tmp_path / "run" / "model")
     assert doc["meta"]["step"] == saved + 3
+    steps = [json.loads(l)["step"] for l in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert steps == list(range(1, saved + 4)), "one log row per step: the lost ones are forgotten and run again"
     # a kill during a save may leave a half-written temporary folder; the next save clears it
     assert not [p for p in (tmp_path / "run").iterdir() if p.name.startswith(".")], "no temporary leftovers"
 

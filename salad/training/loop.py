@@ -19,6 +19,7 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, recover_checkpoint, save_checkpoint
+from ..files import atomic_write_text
 from .configs import OptimConfig, RunConfig
 
 STATE_DIR = "state"
@@ -177,6 +178,23 @@ class Trainer:
         if self.ema is not None:
             self.ema.load_state_dict(self.model.state_dict())
 
+    @staticmethod
+    def _forget_logged_steps_after(log_file: Path, step: int) -> None:
+        """Drop log rows of steps past the resumed state (they were lost with the process and are
+        run again), so the log has one row per step."""
+        if not log_file.exists():
+            return
+        lines = [l for l in log_file.read_text(encoding="utf-8", errors="replace").splitlines() if l.strip()]
+        keep = []
+        for line in lines:
+            try:
+                if json.loads(line).get("step", 0) <= step:
+                    keep.append(line)
+            except (json.JSONDecodeError, AttributeError):      # a row torn by the kill
+                pass
+        if len(keep) != len(lines):
+            atomic_write_text(log_file, "".join(l + "\n" for l in keep))
+
     # ------------------------------------------------------------ the loop
     def fit(self) -> Path:
         resumed = self.try_resume()
@@ -186,6 +204,7 @@ class Trainer:
             self.out.mkdir(parents=True, exist_ok=True)
             if resumed:
                 tqdm.write(f"resumed {self.out} at step {self.step_count}", file=sys.stderr)
+                self._forget_logged_steps_after(log_file, self.step_count)
         bar = tqdm(total=total, initial=self.step_count, disable=self.rank != 0, dynamic_ncols=True,
                    desc=self.task.kind)
         t0, n0 = time.time(), 0
