@@ -201,5 +201,5 @@ def test_denoiser_batches_are_the_same_whether_posteriors_are_cached_or_not(tiny
         cold._posteriors.clear()
     i, (mu, logvar) = next(iter(warm._posteriors.items()))
     f = warm.dataset.items[i].features
-    fresh, _ = warm.vae.encode(*warm._canvas([warm.normalizer.normalize(f[: len(f) // 4 * 4])], warm.canvas))
+    fresh, _ = warm.vae.encode(*warm._canvas([warm.normalizer.normalize(f[: len(f) // 4 * 4])]))
     assert mu.shape == fresh[0].shape and torch.allclose(mu, fresh[0], atol=1e-5)

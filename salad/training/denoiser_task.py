@@ -67,7 +67,8 @@ class DenoiserTask:
         self._by_length = np.argsort([min(len(it.features), self.canvas) for it in self.dataset.items], kind="stable")
         # VAE posteriors (mean, log-variance) over the canvas of motions that fit it, kept from
         # their first draw: the encoder is frozen and their input never changes, and the batched
-        # encode was ~15% of a step. Longer motions get a random window, encoded each time.
+        # encode was ~15% of a step (the cache grows to ~0.4 GB on the Bandai build). Longer
+        # motions get a random window, encoded each time.
         self._posteriors: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self.text_encoder = load_text_encoder(cfg.text_encoder)
         if cfg.model.text_dim != self.text_encoder.dim:
@@ -80,9 +81,10 @@ class DenoiserTask:
         self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule)
 
     # ------------------------------------------------------------ batches
-    def _canvas(self, crops: list[np.ndarray], T: int) -> tuple[torch.Tensor, torch.Tensor]:
-        feats = torch.zeros(len(crops), T, self.dataset.dim)
-        act = torch.zeros(len(crops), T)
+    def _canvas(self, crops: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalised motions placed on the canvas, followed by padding with activation 0."""
+        feats = torch.zeros(len(crops), self.canvas, self.dataset.dim)
+        act = torch.zeros(len(crops), self.canvas)
         for b, c in enumerate(crops):
             feats[b, :len(c)] = torch.from_numpy(c)
             act[b, :len(c)] = 1.0
@@ -118,7 +120,7 @@ class DenoiserTask:
         if todo:
             with torch.no_grad():
                 mu, logvar = self.vae.encode(
-                    *self._canvas([self.normalizer.normalize(crops[b]) for b in todo], self.canvas))
+                    *self._canvas([self.normalizer.normalize(crops[b]) for b in todo]))
             for k, b in enumerate(todo):
                 posterior[b] = (mu[k].clone(), logvar[k].clone())
                 if fits[b]:
