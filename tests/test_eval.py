@@ -255,6 +255,32 @@ def test_evaluator_trains_saves_and_loads_bit_exactly(labelled_dataset, minilm, 
     assert res2["metrics"]["FID"]["mean"] > res["metrics"]["FID"]["mean"]
     with pytest.raises(ValueError, match="shape"):
         evaluate_t2m(lambda c, n: [np.zeros((k + 1, 263)) for k in n], ds, ev, repeats=1, batch_size=4, mm_prompts=0)
+
+    # generation batches are grouped by length, and each motion is scored against its own caption
+    ids = {c: k for k, c in enumerate(sorted({c for it in ds.items for c in it.captions}))}
+    calls = []
+
+    def tagged(captions, lengths):
+        calls.append(list(lengths))
+        return [np.full((n, 263), ids[c], np.float32) for c, n in zip(captions, lengths)]
+
+    class Spy:
+        def __init__(self):
+            self.texts, self.motions = [], []
+
+        def embed_texts(self, captions):
+            self.texts.append(list(captions))
+            return ev.embed_texts(captions)
+
+        def embed_motions(self, motions):
+            self.motions.append(list(motions))
+            return ev.embed_motions(motions)
+
+    spy = Spy()
+    evaluate_t2m(tagged, ds, spy, repeats=1, batch_size=4, mm_prompts=0)
+    assert sum(map(len, calls)) == 8 and all(max(a) <= min(b) for a, b in zip(calls, calls[1:]))
+    scored, captions = spy.motions[1], spy.texts[0]     # [0] is the reference set
+    assert [int(m[0, 0]) for m in scored] == [ids[c] for c in captions]
     report = write_report({"Real motion": res, "Jitter": res2}, tmp_path / "report")
     text = report.read_text()
     assert "| Real motion |" in text and "| Jitter |" in text and "MultiModality" in text
