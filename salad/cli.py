@@ -175,7 +175,7 @@ def cmd_eval(a) -> int:
     rows = {"Real motion": evaluate_t2m(ground_truth_generator(ds), ds, ev, repeats=a.repeats, seed=a.seed,
                                         progress=True)}
     for model in [] if a.real_only else a.model or [None]:
-        pipe = load_pipeline(model)
+        pipe = load_pipeline(model, bf16=not a.fp32)
         name = "SALAD (embedded)" if model is None else f"SALAD ({Path(model).name})"
         vae = VAEReconstruction(pipe)
         rows[f"{name} VAE reconstruction"] = evaluate_t2m(vae, ds, ev, repeats=1, seed=a.seed, progress=True)
@@ -309,6 +309,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--mm-repeats", type=int, default=10)
     ev.add_argument("--seed", type=int, default=0)
     ev.add_argument("--threads", type=int, default=0)
+    ev.add_argument("--fp32", action="store_true",
+                    help="disable bf16 autocast (CPUs without bf16 run fp32 anyway); a run resumes only in the precision it started in")
     ev.add_argument("--out", required=True, help="directory for results.json and report.md")
     ev.set_defaults(func=cmd_eval)
 

@@ -15,12 +15,11 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, save_checkpoint
-from ..config import ConfigError, from_dict, to_dict
+from ..config import ConfigError
 from ..motion.representation import FEATURE_DIM
 from .evaluator import check_feature_list, embed_motion_batches
 from .labels import CONTENTS, SIDES, STYLES
-from .networks import CONTACT_CHANNELS, MotionEncoder, MotionEncoderConfig
+from .networks import CONTACT_CHANNELS, MotionEncoder, MotionEncoderConfig, load_scorer, save_scorer
 
 KIND = "classifier"
 # every label the caption templates know, per head (a dataset may use a subset)
@@ -122,21 +121,11 @@ class Classifier:
 
 def save_classifier(path: str | Path, model: MotionClassifier, mean: np.ndarray, std: np.ndarray,
                     meta: dict[str, Any] | None = None) -> Path:
-    stats = {"mean": torch.as_tensor(np.asarray(mean, np.float32)), "std": torch.as_tensor(np.asarray(std, np.float32))}
-    return save_checkpoint(path, KIND, to_dict(model.cfg), {"model": model.state_dict(), "stats": stats}, meta or {})
+    return save_scorer(path, KIND, model, mean, std, meta)
 
 
 def load_classifier(path: str | Path) -> Classifier:
-    doc, parts = load_checkpoint(path, KIND)
-    try:
-        cfg = from_dict(ClassifierConfig, doc["config"], f"{path}/config.json")
-    except ConfigError as e:
-        raise CheckpointError(str(e)) from None
-    for part in ("model", "stats"):
-        if part not in parts:
-            raise CheckpointError(f"{path}: classifier checkpoint lacks its {part!r} part")
-    model = MotionClassifier(cfg)
-    load_state_strict(model, parts["model"], str(path))
-    clf = Classifier(model, parts["stats"]["mean"].numpy(), parts["stats"]["std"].numpy())
+    model, mean, std, doc = load_scorer(path, KIND, ClassifierConfig, MotionClassifier)
+    clf = Classifier(model, mean, std)
     clf.meta = doc.get("meta", {})
     return clf

@@ -23,11 +23,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, save_checkpoint
-from ..config import ConfigError, from_dict, to_dict
+from ..config import ConfigError
 from ..motion.representation import FEATURE_DIM
 from .networks import (CONTACT_CHANNELS, DOWNSAMPLE, MotionEncoder, MotionEncoderConfig, TextEncoderHead,
-                       TextHeadConfig)
+                       TextHeadConfig, load_scorer, save_scorer)
 
 KIND = "evaluator"
 MAX_LOGIT_SCALE = 100.0
@@ -196,30 +195,16 @@ class Evaluator:
 
 def save_evaluator(path: str | Path, matcher: TextMotionMatcher, mean: np.ndarray, std: np.ndarray,
                    meta: dict[str, Any] | None = None) -> Path:
-    stats = {"mean": torch.as_tensor(np.asarray(mean, np.float32)), "std": torch.as_tensor(np.asarray(std, np.float32))}
-    return save_checkpoint(path, KIND, to_dict(matcher.cfg), {"model": matcher.state_dict(), "stats": stats},
-                           meta or {})
+    return save_scorer(path, KIND, matcher, mean, std, meta)
 
 
 def load_evaluator(path: str | Path, text_encoder=None) -> Evaluator:
     """An evaluator checkpoint directory -> Evaluator (the text encoder loads on first use unless given)."""
-    doc, parts = load_checkpoint(path, KIND)
-    try:
-        cfg = from_dict(EvaluatorConfig, doc["config"], f"{path}/config.json")
-    except ConfigError as e:
-        raise CheckpointError(str(e)) from None
-    for part in ("model", "stats"):
-        if part not in parts:
-            raise CheckpointError(f"{path}: evaluator checkpoint lacks its {part!r} part")
-    matcher = TextMotionMatcher(cfg)
-    load_state_strict(matcher, parts["model"], str(path))
-    stats = parts["stats"]
-    if set(stats) != {"mean", "std"}:
-        raise CheckpointError(f"{path}: stats part must hold 'mean' and 'std', has {sorted(stats)}")
+    matcher, mean, std, doc = load_scorer(path, KIND, EvaluatorConfig, TextMotionMatcher)
     if text_encoder is not None and getattr(text_encoder, "spec", None) is not None:
         got = text_encoder.spec().get("kind")
-        if got != cfg.text_encoder.split(":")[0]:
-            raise ValueError(f"{path}: trained with text encoder {cfg.text_encoder!r}, given a {got!r} encoder")
-    ev = Evaluator(matcher, stats["mean"].numpy(), stats["std"].numpy(), text_encoder)
+        if got != matcher.cfg.text_encoder.split(":")[0]:
+            raise ValueError(f"{path}: trained with text encoder {matcher.cfg.text_encoder!r}, given a {got!r} encoder")
+    ev = Evaluator(matcher, mean, std, text_encoder)
     ev.meta = doc.get("meta", {})
     return ev

@@ -9,11 +9,17 @@ available here) with the frozen per-token MiniLM features, read by a trainable B
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
 
+import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from torch.nn.utils.rnn import pack_padded_sequence
+
+from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, save_checkpoint
+from ..config import ConfigError, from_dict, to_dict
 
 CONTACT_CHANNELS = 4   # the last 4 of the 263: foot contacts, left out as in Guo et al.
 DOWNSAMPLE = 4         # two stride-2 convolutions
@@ -132,3 +138,28 @@ class TextEncoderHead(nn.Module):
     def forward(self, tokens: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         # the padded tail is never read: the packed GRU stops at each prompt's last real token
         return self.sequence(tokens, mask.sum(1))
+
+
+def save_scorer(path: str | Path, kind: str, model: nn.Module, mean: np.ndarray, std: np.ndarray,
+                meta: dict[str, Any] | None = None) -> Path:
+    """An evaluation network (its `cfg` as the config) with the feature statistics it normalises by."""
+    stats = {"mean": torch.as_tensor(np.asarray(mean, np.float32)), "std": torch.as_tensor(np.asarray(std, np.float32))}
+    return save_checkpoint(path, kind, to_dict(model.cfg), {"model": model.state_dict(), "stats": stats}, meta or {})
+
+
+def load_scorer(path: str | Path, kind: str, config_cls: type, build: Callable[[Any], nn.Module]):
+    """-> (network in eval mode, mean, std, config.json document) of a checkpoint written by save_scorer."""
+    doc, parts = load_checkpoint(path, kind)
+    try:
+        cfg = from_dict(config_cls, doc["config"], f"{path}/config.json")
+    except ConfigError as e:
+        raise CheckpointError(str(e)) from None
+    for part in ("model", "stats"):
+        if part not in parts:
+            raise CheckpointError(f"{path}: {kind} checkpoint lacks its {part!r} part")
+    stats = parts["stats"]
+    if set(stats) != {"mean", "std"}:
+        raise CheckpointError(f"{path}: stats part must hold 'mean' and 'std', has {sorted(stats)}")
+    model = build(cfg)
+    load_state_strict(model, parts["model"], str(path))
+    return model.eval(), stats["mean"].numpy(), stats["std"].numpy(), doc
