@@ -1,6 +1,7 @@
 import json
 
 from salad.bench import bench, format_table, matmul_peak
+from salad.pipeline import bf16_supported
 
 
 def test_bench_measures_a_model_and_writes_json(tiny_model, tmp_path):
@@ -13,7 +14,11 @@ def test_bench_measures_a_model_and_writes_json(tiny_model, tmp_path):
         if "skipped" in r:
             continue
         assert r["ms_per_motion"] > 0 and r["achieved_gflop_s"] > 0 and r["peak_rss_mb"] > 100
-    assert json.loads((tmp_path / "bench.json").read_text())["machine"]["matmul_peak_gflop_s"]["fp32"] > 1
+    peak = json.loads((tmp_path / "bench.json").read_text())["machine"]["matmul_peak_gflop_s"]
+    assert peak["fp32"] > 1
+    # a CPU without native bf16 gets no bf16 peak (emulated, it took minutes) and no bf16 runs
+    assert (peak["bf16"] is None) == (not bf16_supported())
+    assert all("skipped" in r for r in runs if r["precision"] == "bf16") or bf16_supported()
     assert "ms/motion" in format_table(report)
 
 
