@@ -284,6 +284,7 @@ def test_evaluator_trains_saves_and_loads_bit_exactly(labelled_dataset, minilm, 
     report = write_report({"Real motion": res, "Jitter": res2}, tmp_path / "report")
     text = report.read_text()
     assert "| Real motion |" in text and "| Jitter |" in text and "MultiModality" in text
+    assert "generated in batches of similar length" in text
     assert set(json.loads((tmp_path / "report" / "results.json").read_text())) == {"Real motion", "Jitter"}
 
 

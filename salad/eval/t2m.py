@@ -258,8 +258,9 @@ def write_report(results: Mapping[str, Any], out_dir: str | Path, title: str = "
         f"# {title}", "",
         markdown_table(rows), "",
         f"Protocol: each repeat draws {p.get('motions_per_repeat')} test motions from "
-        f"`{p.get('dataset')}` in batches of {p.get('batch_size')} (R-precision pools), one random caption per "
-        f"motion, windows of at most {p.get('max_frames')} frames cut to multiples of 4; FID against the "
+        f"`{p.get('dataset')}` in batches of {p.get('batch_size')} (R-precision pools"
+        f"{'; generated in batches of similar length' if p.get('generation_batches') == 'by length' else ''}), "
+        f"one random caption per motion, windows of at most {p.get('max_frames')} frames cut to multiples of 4; FID against the "
         f"{ref.get('motions')} real test motions (Diversity of those: {ref.get('Diversity', float('nan')):.4f}); "
         f"Diversity over {p.get('diversity_pairs')} pairs; values are mean ± 1.96·std/√repeats.",
         "Embeddings are unit-norm, so distances lie in [0, 2]; numbers are not comparable with evaluators "
