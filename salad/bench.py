@@ -138,7 +138,7 @@ def _subprocess(fn: str, **kw) -> dict:
 
 def bench(out: Path, models=("embedded", "paper"), batches=(1, 16), quick: bool = False,
           seconds: float = SECONDS) -> dict:
-    from .pipeline import bf16_supported
+    from .precision import bf16_supported
     # without native bf16 (e.g. AVX2-only CPUs) a bf16 matmul is emulated ~100x slower than fp32, and the
     # pipeline runs in fp32 anyway: there is no bf16 peak to measure
     peak = {"fp32": matmul_peak(torch.float32),

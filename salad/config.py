@@ -62,9 +62,13 @@ def load_toml(cls: type[T], path: str | Path) -> T:
 
 
 def apply_overrides(cfg, args) -> None:
-    """The command line's --out-dir, --max-steps, --data and --threads, where given, win over the file."""
+    """The command line's --out-dir, --max-steps, --data, --threads and --vae, where given, win over the file."""
     for flag, section, name in (("out_dir", "run", "out_dir"), ("max_steps", "optim", "max_steps"),
-                                ("data", "data", "root"), ("threads", "run", "threads")):
+                                ("data", "data", "root"), ("threads", "run", "threads"), ("vae", None, "vae")):
         value = getattr(args, flag, None)
-        if value:
-            setattr(getattr(cfg, section), name, value)
+        if not value:
+            continue
+        target = getattr(cfg, section) if section else cfg
+        if not hasattr(target, name):
+            raise ConfigError(f"--{flag.replace('_', '-')} does not apply to a {type(cfg).__name__}")
+        setattr(target, name, value)

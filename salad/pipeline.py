@@ -24,6 +24,7 @@ from .models.denoiser import Denoiser
 from .models.io import load_denoiser, load_vae, vae_latent_checksums
 from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
+from .precision import bf16_supported
 from .motion.motion import Motion
 from .motion.representation import FPS, Normalizer, features_to_joints
 
@@ -34,13 +35,6 @@ ACTIVATION_THRESHOLD = 0.5
 MIN_AUTO_FRAMES = 16
 
 Progress = Callable[[int, int], None]
-
-
-def bf16_supported() -> bool:
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):
-        return False
 
 
 class Pipeline:

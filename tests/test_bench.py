@@ -1,7 +1,7 @@
 import json
 
 from salad.bench import bench, format_table, matmul_peak
-from salad.pipeline import bf16_supported
+from salad.precision import bf16_supported
 
 
 def test_bench_measures_a_model_and_writes_json(tiny_model, tmp_path):

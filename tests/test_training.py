@@ -176,6 +176,84 @@ def test_init_from_an_exported_model_warm_starts(tiny_dataset, tmp_path):
     assert trainer.step_count == 0
 
 
+def test_continuing_refuses_a_snapshot_that_is_already_as_far(tiny_dataset, tmp_path):
+    fit(vae_config(tiny_dataset, tmp_path / "first", steps=3))
+    cfg = vae_config(tiny_dataset, tmp_path / "second", steps=3)
+    trainer = Trainer(VAETask(cfg), cfg.optim, cfg.run)
+    with pytest.raises(ValueError, match="trained for 3 steps already"):
+        trainer.init_weights(tmp_path / "first" / "model", carry_step=True)
+
+
+def _denoiser_toml(path: Path, root: Path, steps: int) -> Path:
+    path.write_text(f"""vae = "does/not/exist"
+[data]
+root = "{root}"
+max_frames = 40
+[model]
+latent_dim = 8
+dim = 32
+heads = 4
+ff_dim = 64
+layers = 3
+text_dim = 384
+[optim]
+lr = 1e-3
+warmup_steps = 4
+batch_size = 4
+max_steps = {steps}
+[run]
+bf16 = false
+checkpoint_every = 2
+log_every = 1
+""")
+    return path
+
+
+def test_denoiser_continues_a_snapshot_from_its_step_with_a_rewarm(tiny_model, tiny_dataset, tmp_path):
+    from salad.cli import main
+    from salad.models.io import load_denoiser
+
+    _, before = load_denoiser(tiny_model / "denoiser")
+    start = before["meta"]["step"]
+    cfg = _denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=start + 3)
+    out = tmp_path / "more"
+    assert main(["train", "denoiser", "--config", str(cfg), "--out-dir", str(out), "--vae", str(tiny_model / "vae"),
+                 "--continue-from", str(tiny_model / "denoiser")]) == 0
+    _, after = load_denoiser(out / "model")
+    assert after["meta"]["step"] == start + 3
+    assert after["meta"]["samples_seen"] == before["meta"]["samples_seen"] + 3 * 4
+    rows = [json.loads(l) for l in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [start + 1, start + 2, start + 3]
+    # a fresh optimiser warms up again from the snapshot's step: 1/4, 2/4, 3/4 of lr
+    assert [r["lr"] for r in rows] == pytest.approx([2.5e-4, 5e-4, 7.5e-4])
+    # resuming the continued run keeps the re-warm-up where it was
+    _denoiser_toml(cfg, tiny_dataset, steps=start + 5)
+    assert main(["train", "denoiser", "--config", str(cfg), "--out-dir", str(out), "--vae", str(tiny_model / "vae"),
+                 "--continue-from", str(tiny_model / "denoiser")]) == 0
+    rows = [json.loads(l) for l in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["lr"] for r in rows[3:]] == pytest.approx([1e-3, 1e-3])
+
+
+def test_denoiser_init_from_refuses_another_vaes_latents(tiny_model, tiny_dataset, tmp_path, capsys):
+    from salad.cli import main
+
+    fit(vae_config(tiny_dataset, tmp_path / "other-vae", steps=1, every=1))
+    cfg = _denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=100)
+    assert main(["train", "denoiser", "--config", str(cfg), "--out-dir", str(tmp_path / "x"),
+                 "--vae", str(tmp_path / "other-vae" / "model"), "--init-from", str(tiny_model / "denoiser")]) == 2
+    assert "another VAE" in capsys.readouterr().err
+    assert not (tmp_path / "x" / "model").exists()
+
+
+def test_vae_override_only_applies_where_there_is_a_vae(tiny_dataset, tmp_path, capsys):
+    from salad.cli import main
+
+    cfg = tmp_path / "v.toml"
+    cfg.write_text(f'[data]\nroot = "{tiny_dataset}"\n')
+    assert main(["train", "vae", "--config", str(cfg), "--vae", "x"]) == 2
+    assert "--vae does not apply to a VAETrainConfig" in capsys.readouterr().err
+
+
 def test_denoiser_batches_are_the_same_whether_posteriors_are_cached_or_not(tiny_model, tiny_dataset, tmp_path):
     from salad.diffusion.schedule import DiffusionConfig
     from salad.models.denoiser import DenoiserConfig
@@ -203,3 +281,18 @@ def test_denoiser_batches_are_the_same_whether_posteriors_are_cached_or_not(tiny
     f = warm.dataset.items[i].features
     fresh, _ = warm.vae.encode(*warm._canvas([warm.normalizer.normalize(f[: len(f) // 4 * 4])]))
     assert mu.shape == fresh[0].shape and torch.allclose(mu, fresh[0], atol=1e-5)
+
+
+def test_bf16_runs_train_in_fp32_on_a_cpu_without_native_bf16(tiny_dataset, tmp_path, monkeypatch, capsys):
+    import salad.training.loop as loop
+
+    monkeypatch.setattr(loop, "bf16_supported", lambda: False)
+    cfg = vae_config(tiny_dataset, tmp_path / "run", steps=1, bf16=True)
+    trainer = Trainer(VAETask(cfg), cfg.optim, cfg.run)
+    assert not trainer.bf16 and "no native bf16" in capsys.readouterr().err
+    with trainer.autocast():
+        assert not torch.is_autocast_enabled("cpu")
+    monkeypatch.setattr(loop, "bf16_supported", lambda: True)
+    trainer = Trainer(VAETask(cfg), cfg.optim, cfg.run)
+    with trainer.autocast():
+        assert torch.is_autocast_enabled("cpu")

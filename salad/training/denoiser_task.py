@@ -21,8 +21,8 @@ from ..config import to_dict
 from ..data.dataset import MotionDataset
 from ..diffusion.schedule import NoiseSchedule
 from ..models.denoiser import Denoiser
-from ..checkpoint import load_state_strict
-from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum
+from ..checkpoint import CheckpointError, load_state_strict
+from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum, vae_latent_checksums
 from ..models.text import load_text_encoder
 from ..models.text_bank import TextBank
 from .configs import DenoiserTrainConfig
@@ -57,7 +57,11 @@ class DenoiserTask:
 
     def __init__(self, cfg: DenoiserTrainConfig, show_progress: bool = True):
         self.cfg = cfg
-        self.vae, self.normalizer, self.latent_scale, _ = load_vae(cfg.vae)
+        try:
+            self.vae, self.normalizer, self.latent_scale, _ = load_vae(cfg.vae)
+        except CheckpointError as e:
+            raise CheckpointError(f"the denoiser's VAE: {e} (train one with `salad train vae`, or pass "
+                                  "--vae assets/model/vae to use the embedded one)") from None
         self.vae.requires_grad_(False)
         self.vae_checksum = vae_checksum(cfg.vae)
         d = cfg.data
@@ -151,9 +155,20 @@ class DenoiserTask:
     def config_dict(self) -> dict:
         return to_dict(self.cfg)
 
-    def load_weights(self, model: nn.Module, path: Path) -> None:
-        denoiser, _ = load_denoiser(path)
+    def load_weights(self, model: nn.Module, path: Path) -> dict:
+        denoiser, doc = load_denoiser(path)
+        # Same-shaped weights from another latent space or text encoder would load fine and
+        # train into nonsense, so the partners are checked by identity, not by shape.
+        trained_on = doc["config"].get("vae_checksum")
+        if trained_on and trained_on not in vae_latent_checksums(self.cfg.vae):
+            raise CheckpointError(f"{path} was trained on another VAE's latents than {self.cfg.vae}'s; "
+                                  "pass the VAE it was trained with (--vae)")
+        theirs, mine = doc["config"].get("text_encoder", {}), self.text_encoder.spec()
+        if theirs.get("name") != mine.get("name"):
+            raise CheckpointError(f"{path} was trained with the {theirs.get('name')} text encoder, this config "
+                                  f"uses {mine.get('name')}")
         load_state_strict(model.denoiser, denoiser.state_dict(), str(path))
+        return doc.get("meta", {})
 
     def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
         save_denoiser(path, model.denoiser, self.schedule.config, self.text_encoder.spec(), self.canvas,

@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, recover_checkpoint, save_checkpoint
 from ..files import atomic_write_text
+from ..precision import bf16_supported
 from .configs import OptimConfig, RunConfig
 
 STATE_DIR = "state"
@@ -35,11 +36,13 @@ class Task(Protocol):
     def loss(self, model: torch.nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]: ...
     def export(self, model: torch.nn.Module, path: Path, meta: dict[str, Any]) -> None: ...
     def config_dict(self) -> dict: ...
-    # optional, for --init-from: def load_weights(self, model: torch.nn.Module, path: Path) -> None
+    # optional, for --init-from; returns the exported model's meta (its step, samples_seen):
+    # def load_weights(self, model: torch.nn.Module, path: Path) -> dict
 
 
-def lr_factor(step: int, cfg: OptimConfig) -> float:
-    warm = min(1.0, (step + 1) / cfg.warmup_steps) if cfg.warmup_steps > 0 else 1.0
+def lr_factor(step: int, cfg: OptimConfig, warm_from: int = 0) -> float:
+    """warm_from: the step a warm start began at; its fresh optimiser warms up again from there."""
+    warm = min(1.0, (step - warm_from + 1) / cfg.warmup_steps) if cfg.warmup_steps > 0 else 1.0
     return warm * cfg.gamma ** sum(step >= m for m in cfg.milestones)
 
 
@@ -86,6 +89,7 @@ class Trainer:
         self.optimizer = torch.optim.AdamW(params, lr=optim.lr, betas=tuple(optim.betas),
                                            weight_decay=optim.weight_decay)
         self.step_count = 0
+        self.warm_from = 0
         self.rng = np.random.default_rng(run.seed + 1000 * self.rank)
         torch.manual_seed(run.seed + 1000 * self.rank)
         random.seed(run.seed + 1000 * self.rank)
@@ -93,17 +97,21 @@ class Trainer:
         if self.world > 1:
             self.wrapped = torch.nn.parallel.DistributedDataParallel(self.model)
         self.samples_seen = 0
+        self.bf16 = run.bf16 and bf16_supported()
+        if run.bf16 and not self.bf16 and self.rank == 0:
+            tqdm.write("run.bf16 is set but this CPU has no native bf16 (emulated it is many times slower "
+                       "than fp32): training in fp32", file=sys.stderr)
 
     # ------------------------------------------------------------ one step
     def autocast(self):
-        if self.run_cfg.bf16:
+        if self.bf16:
             return torch.autocast("cpu", dtype=torch.bfloat16)
         return nullcontext()
 
     def step(self, batch: dict) -> dict[str, float]:
         self.model.train()
         for g in self.optimizer.param_groups:
-            g["lr"] = self.optim_cfg.lr * lr_factor(self.step_count, self.optim_cfg)
+            g["lr"] = self.optim_cfg.lr * lr_factor(self.step_count, self.optim_cfg, self.warm_from)
         with self.autocast():
             loss, logs = self.task.loss(self.wrapped, batch)
         if not torch.isfinite(loss):
@@ -132,7 +140,8 @@ class Trainer:
         if self.ema is not None:
             parts["ema"] = self.ema.state_dict()
         meta = {"step": self.step_count, "optimizer": opt_doc, "numpy_rng": self.rng.bit_generator.state,
-                "python_rng": json.loads(json.dumps(random.getstate())), "samples_seen": self.samples_seen}
+                "python_rng": json.loads(json.dumps(random.getstate())), "samples_seen": self.samples_seen,
+                "warm_from": self.warm_from}
         save_checkpoint(self.out / STATE_DIR, f"{self.task.kind}-train-state", self.task.config_dict(), parts, meta)
 
     def try_resume(self) -> bool:
@@ -162,6 +171,7 @@ class Trainer:
         self.optimizer.load_state_dict(_unflatten_optimizer(parts["optimizer"], meta["optimizer"]))
         self.step_count = int(meta["step"])
         self.samples_seen = int(meta.get("samples_seen", 0))
+        self.warm_from = int(meta.get("warm_from", 0))
         if self.rank == 0:
             torch.set_rng_state(parts["rng"]["torch"])
             self.rng.bit_generator.state = meta["numpy_rng"]
@@ -169,12 +179,23 @@ class Trainer:
             random.setstate((state[0], tuple(state[1]), state[2]))
         return True
 
-    def init_weights(self, path: str | Path) -> None:
-        """Warm start from an exported model (e.g. the shipped snapshot) when there is no
-        training state to resume: weights only, fresh optimiser, step 0 of a new run."""
+    def init_weights(self, path: str | Path, carry_step: bool = False) -> None:
+        """Warm start from an exported model when there is no training state to resume. The
+        exported model holds weights only (the EMA ones where there is an EMA), so the optimiser
+        starts fresh and warms up over warmup_steps. By default this is step 0 of a new run (a
+        fine-tune); carry_step continues the snapshot's step count instead, so the LR schedule,
+        max_steps and the exported step keep counting steps of training in all."""
         if recover_checkpoint(self.out / STATE_DIR):
             return
-        self.task.load_weights(self.model, Path(path))
+        path = Path(path)
+        meta = self.task.load_weights(self.model, path) or {}
+        if carry_step:
+            step = int(meta.get("step", 0))
+            if step >= self.optim_cfg.max_steps:
+                raise ValueError(f"{path} was trained for {step} steps already; set --max-steps above {step} "
+                                 "to train it further")
+            self.step_count = self.warm_from = step
+            self.samples_seen = int(meta.get("samples_seen", 0))
         if self.ema is not None:
             self.ema.load_state_dict(self.model.state_dict())
 

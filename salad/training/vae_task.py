@@ -64,9 +64,10 @@ class VAETask:
         mu, _ = vae.encode(b["features"], b["activation"])
         return float(1.0 / mu.float().std().clamp_min(1e-6))
 
-    def load_weights(self, model: nn.Module, path: Path) -> None:
-        vae, _, _, _ = load_vae(path)
+    def load_weights(self, model: nn.Module, path: Path) -> dict:
+        vae, _, _, doc = load_vae(path)
         load_state_strict(model.vae, vae.state_dict(), str(path))
+        return doc.get("meta", {})
 
     def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
         vae = model.vae
