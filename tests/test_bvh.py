@@ -3,7 +3,6 @@ malformed input, round trips, and real Bandai-Namco clips."""
 import math
 import os
 import tarfile
-import time
 
 import numpy as np
 import pytest
@@ -480,10 +479,7 @@ def bandai_clips(shared_data, tmp_path_factory):
 @pytest.mark.shared_data
 def test_bandai_walk_imports_as_a_plausible_person(bandai_clips):
     path = bandai_clips["dataset-1_walk_active_001.bvh"]
-    start = time.perf_counter()
     clip = load_bvh(path)
-    elapsed = time.perf_counter() - start
-    assert elapsed < 1.0                                  # ~10 ms typically
     assert clip.mapping_name == "bandai" and clip.scale == 0.01
     assert clip.source_fps == 30.0 and clip.fps == 20.0
     j = clip.joints
