@@ -98,7 +98,7 @@ def cmd_generate(a) -> int:
     pipe = load_pipeline(a.model, bf16=not a.fp32)
     bar, update = _progress_bar("sampling")
     motions = pipe.generate(a.prompt, seconds=a.seconds, seed=a.seed, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
-                            batch=a.batch, progress=update)
+                            batch=a.batch, progress=update, foot_lock=not a.no_foot_lock)
     bar.close()
     motions = motions if isinstance(motions, list) else [motions]
     for k, m in enumerate(motions):
@@ -123,7 +123,7 @@ def cmd_edit(a) -> int:
     bar, update = _progress_bar("editing")
     res = pipe.edit(a.source, a.target, mode=a.mode, seed=a.seed, seconds=a.seconds, steps=a.steps, cfg=a.cfg,
                     sampler=a.sampler, tau=a.tau, reweight=reweight or None, mirror=a.mirror,
-                    self_inject=a.self_inject, progress=update)
+                    self_inject=a.self_inject, progress=update, foot_lock=not a.no_foot_lock)
     bar.close()
     out = Path(a.output)
     out.mkdir(parents=True, exist_ok=True)
@@ -271,6 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--batch", type=int, default=1, help="motions to generate (files get a _k suffix)")
     g.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     g.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
+    g.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
     g.set_defaults(func=cmd_generate)
 
     e = sub.add_parser("edit", help="zero-shot edit by attention modulation; writes NPY, BVH and a side-by-side MP4")
@@ -289,6 +290,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
     e.add_argument("--model", default=None)
     e.add_argument("--fp32", action="store_true")
+    e.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
     e.set_defaults(func=cmd_edit)
 
     bn = sub.add_parser("bench", help="measure generation speed, solver accuracy and where the time goes")

@@ -48,6 +48,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "output with a _source suffix")
     c.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     c.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
+    c.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
     c.set_defaults(func=cmd_control)
     return c
 
@@ -110,7 +111,7 @@ def cmd_control(a) -> int:
     bar, update = _progress_bar("guided sampling")
     res = pipe.control(a.prompt, signal=sig, seed=a.seed, strength=a.strength, steps=a.steps, cfg=a.cfg,
                        repeats=a.repeats, gradient_steps=a.gradient_steps, refine_steps=a.refine_steps,
-                       progress=update,
+                       progress=update, foot_lock=not a.no_foot_lock,
                        edit=None if a.mirror is None else {"mode": "mirror", "mirror": a.mirror})
     bar.close()
     motions = [("", res)] if a.mirror is None else [("", res.edited), ("_source", res.source)]

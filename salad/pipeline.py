@@ -25,6 +25,7 @@ from .models.io import load_denoiser, load_vae, vae_latent_checksums
 from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
 from .precision import bf16_supported
+from .motion.footlock import lock_feet_features
 from .motion.motion import Motion
 from .motion.representation import FPS, Normalizer, features_to_joints
 
@@ -113,8 +114,11 @@ class Pipeline:
         return fn
 
     @torch.no_grad()
-    def decode(self, latents: torch.Tensor, frames: int | None, texts: list[str], seed: int) -> list[Motion]:
-        """Latents -> motions; with frames=None each motion ends where its activation drops."""
+    def decode(self, latents: torch.Tensor, frames: int | None, texts: list[str], seed: int,
+               foot_lock: bool = True) -> list[Motion]:
+        """Latents -> motions; with frames=None each motion ends where its activation drops.
+        foot_lock pins the feet the decoder marks as planted (salad.motion.footlock): the joints
+        carry the clean-up, the features stay the decoder's output, info["foot_lock"] says what moved."""
         feats, act_logits = self.vae.decode(latents / self.latent_scale)
         feats = self.normalizer.denormalize(feats.float()).numpy()
         out = []
@@ -123,15 +127,19 @@ class Pipeline:
             if frames is None and act_logits is not None:
                 n = end_of_motion(torch.sigmoid(act_logits[b]).numpy())
             f = feats[b, :n]
-            out.append(Motion(joints=features_to_joints(f), features=f, text=texts[b], seed=seed,
-                              info={"auto_length": frames is None}))
+            joints, info = features_to_joints(f), {"auto_length": frames is None}
+            if foot_lock:
+                joints, report = lock_feet_features(joints, f)
+                info["foot_lock"] = report.as_dict()
+            out.append(Motion(joints=joints, features=f, text=texts[b], seed=seed, info=info))
         return out
 
     # ------------------------------------------------------------ generation
     def generate(self, prompt: str, seconds: float | str | None = None, seed: int = 0, steps: int = 50,
                  cfg: float = 7.5, sampler: str = "ddim", batch: int = 1, return_attention: bool = False,
-                 progress: Progress | None = None):
-        """Text -> Motion (or a list of `batch` motions). seconds=None lets the model choose the length."""
+                 progress: Progress | None = None, foot_lock: bool = True):
+        """Text -> Motion (or a list of `batch` motions). seconds=None lets the model choose the length;
+        foot_lock=False returns the decoder's joints without the foot clean-up."""
         prompt = self.check_prompt(prompt)
         frames = self.frames_for(seconds)
         steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
@@ -148,7 +156,7 @@ class Pipeline:
                        sampler=sampler, steps=steps, cfg_scale=cfg, on_step=on_step)
         finally:
             self.denoiser.set_controller(None)
-        motions = self.decode(z, frames, [prompt] * batch, seed)
+        motions = self.decode(z, frames, [prompt] * batch, seed, foot_lock)
         if store is not None:
             for b, m in enumerate(motions):
                 m.attention = store.maps(b, frames=m.frames)
@@ -156,7 +164,7 @@ class Pipeline:
 
     @torch.no_grad()
     def generate_batch(self, prompts: list[str], frames: list[int], seed: int = 0, steps: int = 50,
-                       cfg: float = 7.5, sampler: str = "ddim") -> list[Motion]:
+                       cfg: float = 7.5, sampler: str = "ddim", foot_lock: bool = True) -> list[Motion]:
         """Several prompts with their own lengths (frames, multiples of 4) in one batched
         sampling run, padded and masked in time: the evaluation protocol's workhorse."""
         if len(prompts) != len(frames) or not prompts:
@@ -174,13 +182,14 @@ class Pipeline:
                    steps=steps, cfg_scale=cfg)
         out = []
         for b, n in enumerate(frames):
-            out += self.decode(z[b:b + 1, : n // 4], n, [prompts[b]], seed)
+            out += self.decode(z[b:b + 1, : n // 4], n, [prompts[b]], seed, foot_lock)
         return out
 
     # ------------------------------------------------------------ guided control
     def control(self, prompt: str, targets=None, mask=None, seed: int = 0, strength: float = 1.0, steps: int = 50,
                 cfg: float = 7.5, repeats=None, signal=None, progress: Progress | None = None, edit: dict | None = None,
-                gradient_steps: int | None = None, refine_steps: int | None = None) -> Motion | EditResult:
+                gradient_steps: int | None = None, refine_steps: int | None = None,
+                foot_lock: bool = True) -> Motion | EditResult:
         """Text -> motion that also meets joint position targets (MoLA's training-free guidance).
 
         targets (T, 22, 3) metres and mask (T, 22) or (T, 22, 3) bool, or a ready
@@ -236,7 +245,7 @@ class Pipeline:
         finally:
             if plan is not None:
                 self.denoiser.set_controller(None)
-        motions = self.decode(z, frames, prompts, seed)
+        motions = self.decode(z, frames, prompts, seed, foot_lock)
         if not all(np.isfinite(m.joints).all() for m in motions):
             raise ValueError(f"guided sampling diverged (strength {strength}, {steps} steps): "
                                "lower the strength or use more steps")
@@ -284,7 +293,7 @@ class Pipeline:
     def edit(self, source_prompt: str, target_prompt: str | None = None, mode: str = "swap", seed: int = 0,
              seconds: float | str | None = None, steps: int = 50, cfg: float = 7.5, sampler: str = "ddim",
              tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
-             self_inject: float = 0.2, progress: Progress | None = None) -> EditResult:
+             self_inject: float = 0.2, progress: Progress | None = None, foot_lock: bool = True) -> EditResult:
         """Zero-shot edit by cross-attention modulation (SALAD Algorithm 1).
 
         mode: "swap" (target_prompt replaces words; the source's maps lead while the
@@ -312,7 +321,7 @@ class Pipeline:
                        steps=steps, cfg_scale=cfg, on_step=on_step)
         finally:
             self.denoiser.set_controller(None)
-        source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed)
+        source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock)
         source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
         params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler=sampler)
         return EditResult(source, edited, source.attention, edited.attention, params)

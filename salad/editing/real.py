@@ -205,9 +205,9 @@ def encode(pipe, real: RealMotion) -> torch.Tensor:
     return mu * pipe.latent_scale
 
 
-def decode(pipe, z: torch.Tensor, prompts: list[str]) -> list[Motion]:
+def decode(pipe, z: torch.Tensor, prompts: list[str], foot_lock: bool = True) -> list[Motion]:
     """Latents (B, T/4, 7, D) -> motions of exactly T frames (no activation cut-off)."""
-    return pipe.decode(z, 4 * z.shape[1], prompts, None)
+    return pipe.decode(z, 4 * z.shape[1], prompts, None, foot_lock)
 
 
 def mpjpe(a: np.ndarray, b: np.ndarray, root_relative: bool = True) -> float:
@@ -277,7 +277,7 @@ def reconstruct(pipe, inv: Inversion, correct: bool = False, progress=None) -> M
 
 def edit_inverted(pipe, inv: Inversion, target_prompt: str | None = None, mode: str = "swap",
                   tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
-                  self_inject: float = 0.2, correct: bool = True, progress=None) -> EditResult:
+                  self_inject: float = 0.2, correct: bool = True, progress=None, foot_lock: bool = True) -> EditResult:
     """Algorithm 1 from an inverted trajectory: the source branch replays the inversion
     (exactly, with correct=True), the edited branch starts from the same z_T and gets the
     same per-step corrections."""
@@ -296,7 +296,7 @@ def edit_inverted(pipe, inv: Inversion, target_prompt: str | None = None, mode: 
     controller, store, params = plan.controller, plan.store, plan.params
     start = time.perf_counter()
     z = replay(pipe, inv, text, controller=controller, correct=correct, progress=progress)
-    source, edited = decode(pipe, z, [source_prompt, target_prompt])
+    source, edited = decode(pipe, z, [source_prompt, target_prompt], foot_lock)
     source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
     params.update(inversion=inv.method, correct=correct, steps=inv.steps, cfg=inv.cfg, fp32=inv.fp32,
                   inversion_seconds=round(inv.seconds, 3), edit_seconds=round(time.perf_counter() - start, 3))
@@ -309,7 +309,7 @@ def edit_real(pipe, motion, source_prompt: str, target_prompt: str | None = None
               steps: int = 50, cfg: float = 7.5, tau: float | None = None, reweight: dict[str, float] | None = None,
               mirror: str | None = None, self_inject: float = 0.2, inversion: str = DEFAULT_INVERSION,
               correct: bool = True, fp32: bool = True, bone_lengths=None, retarget: bool | None = None,
-              trim: bool = False, progress=None, **inversion_params) -> EditResult:
+              trim: bool = False, progress=None, foot_lock: bool = True, **inversion_params) -> EditResult:
     """Edit a real motion by text (SALAD Algorithm 1 after inversion).
 
     motion: a .bvh/.npy path, joints (T, 22, 3) in metres, or raw features (T, 263).
@@ -317,7 +317,8 @@ def edit_real(pipe, motion, source_prompt: str, target_prompt: str | None = None
     inversion: one of salad.editing.inversion.METHODS; correct=True adds per-step
     corrections so the source branch reproduces the VAE reconstruction exactly.
     .source is the reconstruction (source.info["mpjpe_m"]: its error against the input),
-    .edited the edit; params hold the settings and timings.
+    .edited the edit; params hold the settings and timings. foot_lock=False leaves out the foot
+    clean-up of both motions (salad.motion.footlock).
     """
     from .inversion import METHODS
 
@@ -333,7 +334,8 @@ def edit_real(pipe, motion, source_prompt: str, target_prompt: str | None = None
     real, inv = invert_real(pipe, motion, source_prompt, method=inversion, steps=steps, cfg=cfg, fp32=fp32,
                             bone_lengths=bone_lengths, retarget=retarget, trim=trim, progress=inner(0),
                             **inversion_params)
-    res = edit_inverted(pipe, inv, target_prompt, mode, tau, reweight, mirror, self_inject, correct, inner(steps))
+    res = edit_inverted(pipe, inv, target_prompt, mode, tau, reweight, mirror, self_inject, correct, inner(steps),
+                        foot_lock)
     res.source.info.update(mpjpe_m=mpjpe(res.source.joints, real.joints),
                            global_mpjpe_m=mpjpe(res.source.joints, real.joints, root_relative=False))
     res.params.update(input=real.source, input_frames=real.frames, **real.info)
@@ -410,6 +412,7 @@ def add_parser(sub) -> None:
                    help="skeleton.json with the training bone lengths (default: found next to the model or its data)")
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--bf16", action="store_true", help="run the denoiser in bf16 (faster, less exact inversion)")
+    p.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
     p.set_defaults(func=cmd_edit_real)
 
 
@@ -434,7 +437,7 @@ def cmd_edit_real(a) -> int:
     bar.close()
     bar, update = _progress_bar("editing")
     res = edit_inverted(pipe, inv, a.target, a.mode, a.tau, reweight, a.mirror, a.self_inject,
-                        correct=not a.no_correct, progress=update)
+                        correct=not a.no_correct, progress=update, foot_lock=not a.no_foot_lock)
     bar.close()
     err = mpjpe(res.source.joints, real.joints)
     notes = [f"{k}={v}" for k, v in real.info.items() if k in ("retargeted", "dropped_frames", "trimmed_from_frames")]

@@ -86,6 +86,34 @@ def foot_skating_ratio(joints: np.ndarray, fps: float = FPS) -> float:
     return float((planted & (speed > SKATE_SPEED)).any(axis=1).mean())
 
 
+STILL_SPEED = 0.2        # m/s: a toe slower than this horizontally is standing still
+
+
+def _toe_speeds(j: np.ndarray, fps: float) -> np.ndarray:
+    """(T-1, 2) horizontal speed of the left and right toe between frames."""
+    toes = j[:, [LEFT_TOE, RIGHT_TOE]]
+    return np.linalg.norm(np.diff(toes[:, :, [0, 2]], axis=0), axis=-1) * fps
+
+
+def still_foot_share(joints: np.ndarray, fps: float = FPS) -> float:
+    """Share of frame steps in which at least one toe stands still (under STILL_SPEED): in real
+    walking one foot is always planted, so this is close to 1; a skating model drops far below."""
+    return float((_toe_speeds(check_joints(joints), fps) < STILL_SPEED).any(axis=1).mean())
+
+
+def contact_slide_share(joints: np.ndarray, fps: float = FPS) -> float:
+    """Of the frame steps in which a toe touches the floor (within CONTACT_HEIGHT of the motion's
+    lowest toe at both ends, so a hovering motion still counts), the share in which a touching
+    toe slides faster than SKATE_SPEED. 0 when no toe touches."""
+    j = check_joints(joints)
+    h = j[:, [LEFT_TOE, RIGHT_TOE], 1]
+    h = h - h.min()
+    touch = (h[1:] < CONTACT_HEIGHT) & (h[:-1] < CONTACT_HEIGHT)
+    sliding = (touch & (_toe_speeds(j, fps) > SKATE_SPEED)).any(axis=1)
+    n = touch.any(axis=1).sum()
+    return float(sliding.sum() / n) if n else 0.0
+
+
 def physical_checks(joints: np.ndarray, fps: float = FPS) -> dict[str, float]:
     """Per-motion kinematic measurements (keys in CHECKS):
 
