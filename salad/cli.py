@@ -12,7 +12,7 @@ from pathlib import Path
 from .eval import EMBEDDED_EVALUATOR
 
 PLUGIN_COMMANDS = ("salad.control_cli", "salad.editing.real", "salad.eval.control_bench", "salad.eval.edit_bench",
-                   "salad.eval.length_dist", "salad.eval.real_edit_bench")
+                   "salad.eval.fidelity", "salad.eval.length_dist", "salad.eval.real_edit_bench")
 
 
 def _env_defaults() -> None:

@@ -1,0 +1,74 @@
+"""The fidelity benchmark: held-out prompts, per-class measures, stated rules, a real run."""
+import json
+
+import pytest
+
+from conftest import synthetic_walk, write_tiny_dataset
+from salad.data.captions import CONTENT_PHRASES, STYLE_PHRASES, caption_variants
+from salad.eval.fidelity import (RULES, checks_for, evaluate_fidelity, fidelity_classes, judge, measure,
+                                 report_markdown)
+from salad.eval.paraphrases import HELD_OUT
+from salad.pipeline import load_pipeline
+
+
+def test_held_out_paraphrases_are_never_training_captions():
+    captions = {c.lower() for content in CONTENT_PHRASES for style in STYLE_PHRASES
+                for c, _ in caption_variants(content, style)}
+    for key, prompts in HELD_OUT.items():
+        content, _, style = key.partition("/")
+        assert content in CONTENT_PHRASES and (not style or style in STYLE_PHRASES), key
+        assert len(set(prompts)) >= 2, key
+        for p in prompts:
+            assert p.lower() not in captions, f"{p!r} is a training caption"
+
+
+def test_every_check_has_a_stated_rule():
+    for cls in fidelity_classes():
+        assert set(cls.checks) <= set(RULES), cls.key
+    with pytest.raises(ValueError, match="unknown fidelity classes"):
+        fidelity_classes(["walk", "cartwheel"])
+    assert "leg_lift_m" in checks_for("kick") and "side" in checks_for("wave-left-hand")
+    assert "still_foot_share" in checks_for("walk-turn-left")
+
+
+def test_measures_read_a_walk_as_a_walk():
+    m = measure(synthetic_walk(80, speed=1.2))
+    assert m["duration_s"] == pytest.approx(4.0)
+    assert 1.0 < m["root_speed_mps"] < 1.4
+    assert abs(m["turn_deg"]) < 15
+    turning = measure(synthetic_walk(80, turn=0.6))
+    assert turning["turn_deg"] > 60                              # a left turn is positive
+    assert 0.0 <= m["still_foot_share"] <= 1.0 and m["jerk_mps3"] > 0
+
+
+def test_rules_pass_and_fail_where_stated():
+    real = [{"duration_s": 4.0, "leg_lift_m": 1.0, "still_foot_share": 0.9, "side": "right"}] * 3
+    assert judge("duration_s", real, [{"duration_s": 5.3}])["pass"]
+    assert not judge("duration_s", real, [{"duration_s": 5.5}])["pass"]
+    assert judge("leg_lift_m", real, [{"leg_lift_m": 0.71}])["pass"]
+    assert not judge("leg_lift_m", real, [{"leg_lift_m": 0.3}])["pass"]
+    planted = [{"still_foot_share": 0.8}]
+    assert judge("still_foot_share", real, planted)["pass"]                      # >= 0.8 x 0.9 raw
+    assert not judge("still_foot_share", real, planted, cleaned=True)["pass"]   # < 0.95 x 0.9 cleaned
+    sides = [{"side": "right"}, {"side": "right"}, {"side": "left"}]
+    assert judge("side", real, sides)["pass"] and not judge("side", real, sides[1:])["pass"]
+
+
+@pytest.mark.slow
+def test_a_fidelity_run_with_the_embedded_model(tmp_path):
+    root = write_tiny_dataset(tmp_path / "data")
+    names = [l for f in ("train", "val", "test") for l in (root / f"{f}.txt").read_text().split()]
+    split = {n: f for f in ("train", "val", "test") for n in (root / f"{f}.txt").read_text().split()}
+    (root / "labels.json").write_text(json.dumps(
+        {n: {"content": "walk", "style": "normal", "split": split[n]} for n in names}))
+    res = evaluate_fidelity(load_pipeline(), root, seeds=1, steps=4, classes=["walk", "kick"])
+    (row,) = res["rows"]                                        # kick has no clips in this dataset
+    assert row["class"] == "walk" and row["reference"] == {"clips": 12, "splits": "all"}
+    assert len(row["samples"]) == len(HELD_OUT["walk"])
+    for variant in ("raw", "clean"):
+        assert set(row[variant]["checks"]) == set(checks_for("walk"))
+        assert row[variant]["pass"] == all(c["pass"] for c in row[variant]["checks"].values())
+    # the foot lock changes only the feet: durations and the root path stay the same
+    assert row["raw"]["checks"]["duration_s"] == row["clean"]["checks"]["duration_s"]
+    report = report_markdown(res)
+    assert "| walk | 12 (all) |" in report and "after the foot lock" in report
