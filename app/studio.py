@@ -122,7 +122,7 @@ class Studio:
         folder = session.new_folder()
         motion, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.generate(
             req.prompt, seconds=req.seconds, seed=req.seed, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
-            return_attention=True, progress=report))
+            return_attention=True, progress=report, foot_lock=req.foot_lock))
         stem = file_stem(req)
         saved = file_writer.submit(save_motion, motion, folder, stem)
         mp4, timings["render_s"] = self.rendered(progress, lambda report: render_video(
@@ -204,7 +204,7 @@ class Studio:
         res, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.edit(
             req.source, req.target, mode=req.mode, seed=req.seed, seconds=req.seconds, steps=req.steps, cfg=req.cfg,
             sampler=req.sampler, tau=req.tau, reweight=dict(req.reweight) or None, mirror=req.mirror,
-            self_inject=req.self_inject, progress=report))
+            self_inject=req.self_inject, progress=report, foot_lock=req.foot_lock))
         stem = file_stem(req)
         saved = [file_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
                  file_writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
@@ -302,7 +302,7 @@ class Studio:
         folder = session.new_folder()
         motion, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.control(
             req.prompt, signal=signal, seed=req.seed, strength=req.strength, steps=req.steps, cfg=req.cfg,
-            progress=report))
+            progress=report, foot_lock=req.foot_lock))
         n = motion.frames
         stem = file_stem(req)
         saved = file_writer.submit(save_motion, motion, folder, stem)

@@ -29,6 +29,7 @@ class GenerateRequest:
     steps: int
     cfg: float
     sampler: str
+    foot_lock: bool = True      # pin planted feet after decoding (salad.motion.footlock)
 
 
 @dataclass(frozen=True)
@@ -105,13 +106,15 @@ def _sampling(pipe, seed, steps, cfg, sampler) -> tuple[int, int, float, str]:
     return _integer("seed", seed, 0, MAX_SEED), n_steps, scale, sampler
 
 
-def parse_generate(pipe, prompt, auto_length, seconds, seed, steps, cfg, sampler) -> GenerateRequest:
+def parse_generate(pipe, prompt, auto_length, seconds, seed, steps, cfg, sampler,
+                   foot_lock=True) -> GenerateRequest:
     """Validate the Generate panel's values against `pipe` (prompt length, vocabulary,
     duration range) and the studio's limits."""
     text = check_text(pipe, prompt)
     duration = _duration(pipe, auto_length, seconds)
     seed, n_steps, scale, sampler = _sampling(pipe, seed, steps, cfg, sampler)
-    return GenerateRequest(prompt=text, seconds=duration, seed=seed, steps=n_steps, cfg=scale, sampler=sampler)
+    return GenerateRequest(prompt=text, seconds=duration, seed=seed, steps=n_steps, cfg=scale, sampler=sampler,
+                           foot_lock=_flag("foot lock", foot_lock))
 
 
 def parse_word(words: list[str], word) -> int | None:
@@ -162,6 +165,7 @@ class EditRequest:
     steps: int
     cfg: float
     sampler: str
+    foot_lock: bool = True
 
     @property
     def edited_prompt(self) -> str:
@@ -175,7 +179,7 @@ def _choice(name: str, value, options) -> str:
 
 
 def parse_edit(pipe, source, mode, target, tau, reweight_word, reweight_scale, mirror, self_inject,
-               auto_length, seconds, seed, steps, cfg, sampler) -> EditRequest:
+               auto_length, seconds, seed, steps, cfg, sampler, foot_lock=True) -> EditRequest:
     """Validate the Edit panel. swap and refine need a target prompt (swap: as many words as
     the source); re-weighting names a word of the edited prompt (required in reweight mode,
     optional with swap/refine); mirroring names a body half (all of it when mirror mode names none)."""
@@ -215,7 +219,7 @@ def parse_edit(pipe, source, mode, target, tau, reweight_word, reweight_scale, m
     seed, n_steps, scale, sampler = _sampling(pipe, seed, steps, cfg, sampler)
     return EditRequest(source=src, target=tgt, mode=mode, tau=t, reweight=weights, mirror=half,
                        self_inject=_number("self-attention injection", self_inject, 0.0, 1.0), seconds=duration,
-                       seed=seed, steps=n_steps, cfg=scale, sampler=sampler)
+                       seed=seed, steps=n_steps, cfg=scale, sampler=sampler, foot_lock=_flag("foot lock", foot_lock))
 
 
 # ---------------------------------------------------------------- guided control
@@ -230,6 +234,7 @@ class ControlRequest:
     seed: int
     steps: int
     cfg: float
+    foot_lock: bool = True
 
 
 def control_signal(pipe, task, preset, seconds, speed, upload, example, keyframes, *, base=None,
@@ -271,14 +276,15 @@ def control_signal(pipe, task, preset, seconds, speed, upload, example, keyframe
 
 
 def parse_control(pipe, prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed,
-                  steps, cfg, **where):
+                  steps, cfg, foot_lock=True, **where):
     """Validate the Control panel and build its signal -> (ControlRequest, ControlSignal);
     `where` are control_signal's keyword arguments."""
     text = check_text(pipe, prompt)
     signal, detail, base_id = control_signal(pipe, task, preset, seconds, speed, upload, example, keyframes, **where)
     seed, n_steps, scale, _ = _sampling(pipe, seed, steps, cfg, "ddim")
     req = ControlRequest(prompt=text, task=task, detail=detail, base=base_id,
-                         strength=_number("strength", strength, 0.0, MAX_STRENGTH), seed=seed, steps=n_steps, cfg=scale)
+                         strength=_number("strength", strength, 0.0, MAX_STRENGTH), seed=seed, steps=n_steps, cfg=scale,
+                         foot_lock=_flag("foot lock", foot_lock))
     return req, signal
 
 
@@ -299,10 +305,11 @@ class RealEditRequest:
     inversion: str                  # a method of salad.editing.inversion
     steps: int
     cfg: float
+    foot_lock: bool = True
 
 
 def parse_real_edit(pipe, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion,
-                    steps, cfg, *, upload_root: Path, clips=None) -> tuple[RealEditRequest, RealInput]:
+                    steps, cfg, foot_lock=True, *, upload_root: Path, clips=None) -> tuple[RealEditRequest, RealInput]:
     """Validate the Real motion panel -> (RealEditRequest, app.real_edit.RealInput). The motion is
     an upload (under `upload_root`) or a test clip of `clips` (an app.real_edit.ClipLibrary),
     never both; the edit is checked as the Edit panel's, with the edit's default τ and
@@ -327,8 +334,8 @@ def parse_real_edit(pipe, upload, clip, source, mode, target, reweight_word, rew
                          + (" or pick a test clip" if clips is not None else ""))
     method = _choice("inversion", inversion, METHODS)
     ed = parse_edit(pipe, source, mode, target, None, reweight_word, reweight_scale, mirror, DEFAULT_SELF_INJECT,
-                    True, None, 0, steps, cfg, "ddim")
+                    True, None, 0, steps, cfg, "ddim", foot_lock)
     req = RealEditRequest(input_name=motion.name, input_kind=motion.kind, input_digest=digest, source=ed.source, target=ed.target,
                           mode=ed.mode, tau=ed.tau, reweight=ed.reweight, mirror=ed.mirror, self_inject=ed.self_inject,
-                          inversion=method, steps=ed.steps, cfg=ed.cfg)
+                          inversion=method, steps=ed.steps, cfg=ed.cfg, foot_lock=ed.foot_lock)
     return req, motion

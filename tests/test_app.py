@@ -38,8 +38,10 @@ def server(pipe, tmp_path_factory):
         yield served
 
 
-def generate(client, prompt, seconds=1.6, seed=0, steps=STEPS, cfg=7.5, sampler="ddim"):
-    return client.predict(prompt, seconds is None, seconds, seed, steps, cfg, sampler, api_name="/generate")
+def generate(client, prompt, seconds=1.6, seed=0, steps=STEPS, cfg=7.5, sampler="ddim", foot_lock=None):
+    """foot_lock=None leaves it out, as a client written before the switch existed does (it defaults to on)."""
+    extra = () if foot_lock is None else (foot_lock,)
+    return client.predict(prompt, seconds is None, seconds, seed, steps, cfg, sampler, *extra, api_name="/generate")
 
 
 def plotly_array(value) -> np.ndarray:
@@ -88,6 +90,26 @@ def test_generate_returns_video_figure_and_files(client, pipe):
     assert heatmap is None and word_video is None
 
 
+def test_foot_lock_switch_reaches_the_pipeline_and_the_summary(client, pipe):
+    prompt, seconds, seed, steps = "a person walks forward", 1.2, 4, 5
+    on = generate(client, prompt, seconds=seconds, seed=seed, steps=steps, foot_lock=True)
+    off = generate(client, prompt, seconds=seconds, seed=seed, steps=steps, foot_lock=False)
+    joints = {}
+    for name, out in (("on", on), ("off", off)):
+        joints[name] = np.load(next(f for f in out[3] if f.endswith(".npy") and not f.endswith("_features.npy")))
+    assert "Foot lock" in on[2] and "Foot lock" not in off[2]
+    assert Path(on[3][0]).parent != Path(off[3][0]).parent, "the switch is part of the request: no reuse"
+    locked = pipe.generate(prompt, seconds=seconds, seed=seed, steps=steps, return_attention=True)
+    raw = pipe.generate(prompt, seconds=seconds, seed=seed, steps=steps, return_attention=True, foot_lock=False)
+    np.testing.assert_allclose(joints["on"], locked.joints, atol=1e-3)
+    np.testing.assert_allclose(joints["off"], raw.joints, atol=1e-3)
+    pinned = sum(locked.info["foot_lock"]["footsteps"].values())
+    if pinned:
+        assert f"{pinned} footstep" in on[2] and not np.allclose(joints["on"], joints["off"], atol=1e-4)
+    else:
+        assert "no planted footsteps" in on[2]
+
+
 def test_attention_views_follow_word_layers_and_steps(client):
     generate(client, "a person raises their left hand", seconds=1.2, seed=1)
     heatmap, overview, files = client.predict("left", [0, 1, 2], 1, STEPS, api_name="/attention")
@@ -128,6 +150,7 @@ def test_attention_views_follow_word_layers_and_steps(client):
     (("a person walks", True, 1.0, 0, STEPS, 7.5, "euler"), "sampler must be one of ddim, dpm"),
     ((["a person walks"], True, 1.0, 0, STEPS, 7.5, "ddim"), "prompt must be a string"),
     (("a person walks", "yes", 1.0, 0, STEPS, 7.5, "ddim"), "automatic length must be true or false"),
+    (("a person walks", True, 1.0, 0, STEPS, 7.5, "ddim", "yes"), "foot lock must be true or false"),
 ])
 def test_bad_generate_inputs_are_reported(client, args, message):
     with pytest.raises(AppError, match=message):
@@ -237,6 +260,8 @@ def test_generate_validation_uses_the_pipelines_limits(pipe):
     req = parse_generate(pipe, "  a person   walks ", False, 1.2, 7.0, 20.0, 3, "dpm")
     assert req == GenerateRequest("a person walks", 1.2, 7, 20, 3.0, "dpm")
     assert parse_generate(pipe, "a person walks", True, "ignored", 0, 1, 0, "ddim").seconds is None
+    assert req.foot_lock is True
+    assert parse_generate(pipe, "a person walks", True, None, 0, 1, 0, "ddim", 0).foot_lock is False
     with pytest.raises(ValueError, match="seconds is required"):
         parse_generate(pipe, "a person walks", False, None, 0, 1, 0, "ddim")
     with pytest.raises(ValueError, match="steps must be a number"):

@@ -15,7 +15,7 @@ from ..settings import (
     DEFAULT_CFG, DEFAULT_PATH_SPEED, DEFAULT_SECONDS, DEFAULT_STEPS, DEFAULT_STRENGTH, MAX_CFG, MAX_PATH_SPEED,
     MAX_SEED, MAX_STEPS, MAX_STRENGTH, MAX_UPLOAD_BYTES, SECONDS_STEP,
 )
-from .generate_panel import MIN_SECONDS
+from .generate_panel import MIN_SECONDS, foot_lock_checkbox
 
 INTRO = ("Generate a motion that also meets joint position targets, by guiding the sampling "
          "(no retraining). Targets are in metres, Y up, the character starting at the origin facing +Z "
@@ -51,6 +51,7 @@ class ControlPanel:
     seed: gr.Number
     steps: gr.Slider
     cfg: gr.Slider
+    foot_lock: gr.Checkbox
     button: gr.Button
     preview: gr.Plot
     video: gr.Video
@@ -61,7 +62,7 @@ class ControlPanel:
     @property
     def inputs(self) -> list:
         return [self.prompt, self.task, self.preset, self.seconds, self.speed, self.upload, self.example,
-                self.keyframes, self.strength, self.seed, self.steps, self.cfg]
+                self.keyframes, self.strength, self.seed, self.steps, self.cfg, self.foot_lock]
 
     @property
     def path_inputs(self) -> list:
@@ -103,6 +104,7 @@ def build_control_panel(max_seconds: float, examples: list[str]) -> ControlPanel
                 steps = gr.Slider(1, MAX_STEPS, value=DEFAULT_STEPS, step=1, label="Diffusion steps (DDIM)",
                                   elem_id="control-steps")
                 cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)")
+                foot_lock = foot_lock_checkbox("control-foot-lock")
             button = gr.Button("Generate with control", variant="primary", elem_id="control-button")
             preview = gr.Plot(initial_preview(seconds.value, speed.value), label="The targets, from above",
                               elem_id="control-preview")
@@ -116,4 +118,5 @@ def build_control_panel(max_seconds: float, examples: list[str]) -> ControlPanel
             downloads = gr.File(label="Downloads: MP4, BVH, NPY joints and features, NPZ, control signal (NPZ)",
                                 file_count="multiple", interactive=False, elem_id="control-downloads")
     return ControlPanel(prompt, task, path_group, preset, seconds, speed, upload_group, upload, example, upload_help,
-                        keyframes, strength, seed, steps, cfg, button, preview, video, top_view, summary, downloads)
+                        keyframes, strength, seed, steps, cfg, foot_lock, button, preview, video, top_view, summary,
+                        downloads)

@@ -13,7 +13,7 @@ from ..settings import (
     DEFAULT_CFG, DEFAULT_REWEIGHT, DEFAULT_SECONDS, DEFAULT_SELF_INJECT, DEFAULT_STEPS, DEFAULT_TAU, MAX_CFG,
     MAX_REWEIGHT, MAX_SEED, MAX_STEPS, SECONDS_STEP,
 )
-from .generate_panel import MIN_SECONDS
+from .generate_panel import MIN_SECONDS, foot_lock_checkbox
 
 INTRO = ("Edit a motion without retraining: the source prompt and the edit are sampled together from the same "
          "noise, and the edit changes only the cross-attention between words and body parts.")
@@ -52,6 +52,7 @@ class EditPanel:
     steps: gr.Slider
     cfg: gr.Slider
     sampler: gr.Radio
+    foot_lock: gr.Checkbox
     button: gr.Button
     video: gr.Video
     summary: gr.Markdown
@@ -63,7 +64,8 @@ class EditPanel:
     @property
     def inputs(self) -> list:
         return [self.source, self.mode, self.target, self.tau, self.reweight_word, self.reweight_scale, self.mirror,
-                self.self_inject, self.auto_length, self.seconds, self.seed, self.steps, self.cfg, self.sampler]
+                self.self_inject, self.auto_length, self.seconds, self.seed, self.steps, self.cfg, self.sampler,
+                self.foot_lock]
 
 
 def build_edit_panel(max_seconds: float) -> EditPanel:
@@ -104,6 +106,7 @@ def build_edit_panel(max_seconds: float) -> EditPanel:
                                   elem_id="edit-steps")
                 cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)")
                 sampler = gr.Radio(["ddim", "dpm"], value="ddim", label="Sampler")
+                foot_lock = foot_lock_checkbox("edit-foot-lock")
             button = gr.Button("Edit", variant="primary", elem_id="edit-button")
             gr.Examples(examples=EXAMPLE_EDITS, inputs=[source, mode, target], label="Example edits",
                         cache_examples=False, api_name="load_edit_example")
@@ -122,5 +125,5 @@ def build_edit_panel(max_seconds: float) -> EditPanel:
                                       "attention maps (NPZ, PNG)", file_count="multiple", interactive=False,
                                 elem_id="edit-downloads")
     return EditPanel(source, mode, mode_help, target, tau, reweight_word, reweight_scale, mirror, self_inject,
-                     auto_length, seconds, seed, steps, cfg, sampler, button, video, summary, word, source_heatmap,
-                     edited_heatmap, downloads)
+                     auto_length, seconds, seed, steps, cfg, sampler, foot_lock, button, video, summary, word,
+                     source_heatmap, edited_heatmap, downloads)

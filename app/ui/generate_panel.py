@@ -12,6 +12,13 @@ from ..examples import EXAMPLE_PROMPTS
 from ..settings import DEFAULT_CFG, DEFAULT_SECONDS, DEFAULT_STEPS, MAX_CFG, MAX_SEED, MAX_STEPS, SECONDS_STEP
 
 MIN_SECONDS = MIN_AUTO_FRAMES / FPS    # the pipeline's shortest motion
+FOOT_LOCK_LABEL = "Foot lock (pin planted feet)"
+FOOT_LOCK_INFO = "planted feet stay put and the legs are re-solved by IK; off shows the decoder's raw joints"
+
+
+def foot_lock_checkbox(elem_id: str) -> gr.Checkbox:
+    """The foot clean-up switch every tab that samples motions has (on, as in the library)."""
+    return gr.Checkbox(value=True, label=FOOT_LOCK_LABEL, info=FOOT_LOCK_INFO, elem_id=elem_id)
 
 
 @dataclass
@@ -23,6 +30,7 @@ class GeneratePanel:
     steps: gr.Slider
     cfg: gr.Slider
     sampler: gr.Radio
+    foot_lock: gr.Checkbox
     button: gr.Button
     video: gr.Video
     skeleton: gr.Plot
@@ -31,7 +39,9 @@ class GeneratePanel:
 
     @property
     def inputs(self) -> list:
-        return [self.prompt, self.auto_length, self.seconds, self.seed, self.steps, self.cfg, self.sampler]
+        # new inputs go last: API clients call the event with positional arguments
+        return [self.prompt, self.auto_length, self.seconds, self.seed, self.steps, self.cfg, self.sampler,
+                self.foot_lock]
 
 
 def build_generate_panel(max_seconds: float) -> GeneratePanel:
@@ -55,6 +65,7 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
                                 info="higher follows the text more closely")
                 sampler = gr.Radio(["ddim", "dpm"], value="ddim", label="Sampler",
                                    info="DPM-Solver++ at 30 steps matches DDIM at 50")
+                foot_lock = foot_lock_checkbox("foot-lock")
             button = gr.Button("Generate", variant="primary", elem_id="generate-button")
         with gr.Column(scale=3, min_width=360):
             with gr.Row(equal_height=True):
@@ -66,5 +77,5 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
             downloads = gr.File(label="Downloads: MP4 video, BVH (Blender), NPY joints, NPY features, "
                                       "NPZ joints + features",
                                 file_count="multiple", interactive=False, elem_id="downloads")
-    return GeneratePanel(prompt, auto_length, seconds, seed, steps, cfg, sampler, button, video, skeleton,
-                         summary, downloads)
+    return GeneratePanel(prompt, auto_length, seconds, seed, steps, cfg, sampler, foot_lock, button, video,
+                         skeleton, summary, downloads)

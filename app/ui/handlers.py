@@ -82,9 +82,9 @@ class Handlers:
     def length_mode(auto_length):
         return gr.Slider(interactive=not bool(auto_length))
 
-    def generate(self, prompt, auto_length, seconds, seed, steps, cfg, sampler, state,
+    def generate(self, prompt, auto_length, seconds, seed, steps, cfg, sampler, foot_lock, state,
                  request: gr.Request, progress=gr.Progress()):
-        req = parse_generate(self.studio.pipe, prompt, auto_length, seconds, seed, steps, cfg, sampler)
+        req = parse_generate(self.studio.pipe, prompt, auto_length, seconds, seed, steps, cfg, sampler, foot_lock)
         session = self.studio.session(state, request.session_hash)
         result = self.studio.generate(session, req, _gr_progress(progress))
         maps = result.motion.attention
@@ -158,9 +158,9 @@ class Handlers:
         return result
 
     def edit(self, source, mode, target, tau, reweight_word, reweight_scale, mirror, self_inject, auto_length,
-             seconds, seed, steps, cfg, sampler, state, request: gr.Request, progress=gr.Progress()):
+             seconds, seed, steps, cfg, sampler, foot_lock, state, request: gr.Request, progress=gr.Progress()):
         req = parse_edit(self.studio.pipe, source, mode, target, tau, reweight_word, reweight_scale, mirror,
-                         self_inject, auto_length, seconds, seed, steps, cfg, sampler)
+                         self_inject, auto_length, seconds, seed, steps, cfg, sampler, foot_lock)
         session = self.studio.session(state, request.session_hash)
         result = self.studio.edit(session, req, _gr_progress(progress))
         focus = self.studio.edit_focus_word(result)
@@ -207,10 +207,10 @@ class Handlers:
         return control_top_view(signal.targets, signal.mask)
 
     def control(self, prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed, steps, cfg,
-                state, request: gr.Request, progress=gr.Progress()):
+                foot_lock, state, request: gr.Request, progress=gr.Progress()):
         base = state.current if isinstance(state, Session) else None
         req, signal = parse_control(self.studio.pipe, prompt, task, preset, seconds, speed, upload, example, keyframes,
-                                    strength, seed, steps, cfg, base=base,
+                                    strength, seed, steps, cfg, foot_lock, base=base,
                                     upload_root=self.studio.workspace.gradio_cache,
                                     examples_dir=self.studio.control_examples)
         session = self.studio.session(state, request.session_hash)
@@ -238,9 +238,9 @@ class Handlers:
         return ""
 
     def edit_real(self, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion, steps,
-                  cfg, state, request: gr.Request, progress=gr.Progress()):
+                  cfg, foot_lock, state, request: gr.Request, progress=gr.Progress()):
         req, motion = parse_real_edit(self.studio.pipe, upload, clip, source, mode, target, reweight_word,
-                                      reweight_scale, mirror, inversion, steps, cfg,
+                                      reweight_scale, mirror, inversion, steps, cfg, foot_lock,
                                       upload_root=self.studio.workspace.gradio_cache, clips=self.clips)
         session = self.studio.session(state, request.session_hash)
         result = real_edit.edit_real(self.studio, session, req, motion, _gr_progress(progress))

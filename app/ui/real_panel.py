@@ -16,7 +16,8 @@ from ..settings import (
     DEFAULT_CFG, DEFAULT_REWEIGHT, DEFAULT_STEPS, MAX_CFG, MAX_REWEIGHT, MAX_STEPS, MAX_UPLOAD_BYTES,
 )
 from .edit_panel import MIRROR_CHOICES, MODE_HELP, MODES
-from .summaries import MIRROR_NAMES, MODE_NAMES, escape_md, quoted
+from .generate_panel import foot_lock_checkbox
+from .summaries import MIRROR_NAMES, MODE_NAMES, escape_md, foot_lock_line, quoted
 
 INTRO = ("Edit a recorded motion by text. Describe the motion as it is (the source prompt): it is encoded and "
          "inverted under that prompt, so that sampling it back gives the motion again, and the edit then changes "
@@ -45,6 +46,7 @@ class RealPanel:
     inversion: gr.Radio
     steps: gr.Slider
     cfg: gr.Slider
+    foot_lock: gr.Checkbox
     button: gr.Button
     video: gr.Video
     summary: gr.Markdown
@@ -53,7 +55,7 @@ class RealPanel:
     @property
     def inputs(self) -> list:
         return [self.upload, self.clip, self.source, self.mode, self.target, self.reweight_word, self.reweight_scale,
-                self.mirror, self.inversion, self.steps, self.cfg]
+                self.mirror, self.inversion, self.steps, self.cfg, self.foot_lock]
 
 
 def build_real_panel(clip_choices: list[tuple[str, str]]) -> RealPanel:
@@ -92,6 +94,7 @@ def build_real_panel(clip_choices: list[tuple[str, str]]) -> RealPanel:
                                   info="the inversion and the edit take as many each", elem_id="real-steps")
                 cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)",
                                 elem_id="real-cfg")
+                foot_lock = foot_lock_checkbox("real-foot-lock")
             button = gr.Button("Edit the motion", variant="primary", elem_id="real-button")
         with gr.Column(scale=3, min_width=360):
             gr.Markdown("**Input, reconstruction and edit, in sync**", elem_classes="video-caption")
@@ -101,7 +104,7 @@ def build_real_panel(clip_choices: list[tuple[str, str]]) -> RealPanel:
             downloads = gr.File(label="Downloads: edited BVH, NPY joints and features, side-by-side MP4",
                                 file_count="multiple", interactive=False, elem_id="real-downloads")
     return RealPanel(upload, clip, source, mode, mode_help, target, reweight_word, reweight_scale, mirror,
-                     inversion, steps, cfg, button, video, summary, downloads)
+                     inversion, steps, cfg, foot_lock, button, video, summary, downloads)
 
 
 def real_markdown(result: Result) -> str:
@@ -133,5 +136,6 @@ def real_markdown(result: Result) -> str:
             f"**Reconstruction error (MPJPE): {100 * reconstruction_error_m(result):.1f} cm** against the input. "
             f"Most changed by the edit: **{escape_md(part)}** ({100 * change:.0f} cm on average, pelvis-relative); "
             f"the pelvis path moved {100 * diff.root_change_m:.0f} cm on average.  \n"
-            f"Inverted in {t['inversion_s']:.1f} s, edited in {t['edit_s']:.1f} s, "
+            + foot_lock_line(result.motion)
+            + f"Inverted in {t['inversion_s']:.1f} s, edited in {t['edit_s']:.1f} s, "
             f"rendered in {t['render_s']:.1f} s{waited}.")

@@ -30,12 +30,29 @@ def _sampling(req, sampler: str | None = None) -> str:
     return f"seed {req.seed}, {req.steps} {(sampler or 'ddim').upper()} steps, CFG {req.cfg:g}"
 
 
+def foot_lock_line(motion) -> str:
+    """One short line on what the foot lock did (salad.motion.footlock's report in
+    motion.info["foot_lock"]), ending in a Markdown line break; "" when it was off."""
+    report = (getattr(motion, "info", None) or {}).get("foot_lock")
+    if not isinstance(report, dict):
+        return ""
+    steps = sum((report.get("footsteps") or {}).values())
+    if not steps:
+        return "Foot lock: no planted footsteps to pin.  \n"
+    line = (f"Foot lock: {steps} footstep{'s' if steps != 1 else ''} pinned, "
+            f"feet moved at most {100 * report.get('max_shift_m', 0.0):.1f} cm")
+    unreachable = report.get("unreachable_frames", 0)
+    if unreachable:
+        line += f", {unreachable} frame{'s' if unreachable != 1 else ''} out of reach"
+    return line + ".  \n"
+
+
 def summary_markdown(result: Result) -> str:
     """A generated motion."""
     r, m = result.request, result.motion
     length = "automatic length" if r.seconds is None else f"{r.seconds:g} s requested"
-    return (f"**{quoted(r.prompt)}** — {m.seconds:.1f} s ({m.frames} frames, {length}), {_sampling(r, r.sampler)}. "
-            + _timing(result, "Sampled"))
+    return (f"**{quoted(r.prompt)}** — {m.seconds:.1f} s ({m.frames} frames, {length}), "
+            f"{_sampling(r, r.sampler)}.  \n" + foot_lock_line(m) + _timing(result, "Sampled"))
 
 
 def _word_changes(words_src: list[str], words_tgt: list[str], word_map: list[int]) -> tuple[list, list]:
@@ -74,7 +91,7 @@ def edit_markdown(result: Result, word_map: list[int]) -> str:
     return (line[:k] + line[k].upper() + line[k + 1:]
             + f".  \n**{quoted(r.edited_prompt)}**: source {src.seconds:.1f} s ({src.frames} frames), edited "
             f"{edited.seconds:.1f} s ({edited.frames} frames), {_sampling(r, r.sampler)}.  \n{moved}  \n"
-            + _timing(result, "Sampled both branches"))
+            + foot_lock_line(edited) + _timing(result, "Sampled both branches"))
 
 
 def describe_control(result: Result) -> str:
@@ -98,4 +115,4 @@ def control_markdown(result: Result) -> str:
     error = (f"**control error: mean {100 * info['control_mean_error_m']:.1f} cm, "
              f"max {100 * info['control_max_error_m']:.1f} cm**" if "control_mean_error_m" in info else "")
     return (f"{describe_control(result)} · {quoted(r.prompt)} — {m.seconds:.1f} s ({m.frames} frames), "
-            f"strength {r.strength:g}, {_sampling(r)}.  \n{error}  \n" + _timing(result, "Sampled"))
+            f"strength {r.strength:g}, {_sampling(r)}.  \n{error}  \n" + foot_lock_line(m) + _timing(result, "Sampled"))
