@@ -103,7 +103,7 @@ class ClipLibrary:
         self.root = Path(root)
         names = read_split(self.root, "test")
         if (self.root / "labels.json").is_file():
-            from salad.eval.labels import read_labels
+            from salad.data.labels import read_labels
             from salad.eval.real_edit_bench import pick_test_clips
 
             listed = set(names)

@@ -91,6 +91,29 @@ def _progress_bar(desc: str):
     return bar, bar.update
 
 
+def print_warnings(*motions) -> None:
+    """The motions' prompt warnings (salad.models.vocabulary) on stderr, each once."""
+    seen = []
+    for m in motions:
+        for w in m.warnings:
+            if w not in seen:
+                seen.append(w)
+                print(f"warning: {m.text!r}: {w}", file=sys.stderr)
+
+
+def cmd_data_vocabulary(a) -> int:
+    from .models.io import load_denoiser
+    from .models.text import load_text_encoder
+    from .models.vocabulary import build_vocabulary, save_vocabulary
+    model = Path(a.model)
+    _, doc = load_denoiser(model / "denoiser")
+    vocab = build_vocabulary(a.dir, split=a.split)
+    path = save_vocabulary(vocab, load_text_encoder(doc["config"]["text_encoder"]), model)
+    print(f"wrote {path}: {len(vocab.actions)} actions, {len(vocab.examples)} example captions, "
+          f"{len(vocab.words)} words, manner words: {', '.join(vocab.styles) or 'none'}")
+    return 0
+
+
 def cmd_generate(a) -> int:
     from .motion.motion import check_output_paths
     from .pipeline import load_pipeline
@@ -101,6 +124,7 @@ def cmd_generate(a) -> int:
                             batch=a.batch, progress=update, foot_lock=not a.no_foot_lock)
     bar.close()
     motions = motions if isinstance(motions, list) else [motions]
+    print_warnings(*motions)
     for k, m in enumerate(motions):
         for o in outs:
             path = o if len(motions) == 1 else o.with_name(f"{o.stem}_{k}{o.suffix}")
@@ -125,6 +149,7 @@ def cmd_edit(a) -> int:
                     sampler=a.sampler, tau=a.tau, reweight=reweight or None, mirror=a.mirror,
                     self_inject=a.self_inject, progress=update, foot_lock=not a.no_foot_lock)
     bar.close()
+    print_warnings(res.source, res.edited)
     out = Path(a.output)
     out.mkdir(parents=True, exist_ok=True)
     for name, m in (("source", res.source), ("edited", res.edited)):
@@ -258,6 +283,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("dir")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_data_stats)
+    v = data.add_parser("vocabulary", help="what a model knows: its trained actions and words, for prompt warnings",
+                        description="Writes vocabulary.json (+ the captions' text features) into a model directory "
+                                    "from the dataset its denoiser was trained on; generation then warns about "
+                                    "prompts outside it.")
+    v.add_argument("dir", help="the dataset (HumanML3D layout; labels.json gives the action of each motion)")
+    v.add_argument("--model", default="assets/model", help="model directory holding denoiser/ (default: the embedded one)")
+    v.add_argument("--split", default="train")
+    v.set_defaults(func=cmd_data_vocabulary)
 
     g = sub.add_parser("generate", help="text -> motion, saved as .npy/.npz/.bvh/.mp4/.gif/.png")
     g.add_argument("prompt")

@@ -96,7 +96,7 @@ def _error_line(m, sig: ControlSignal) -> str:
 
 
 def cmd_control(a) -> int:
-    from .cli import _progress_bar
+    from .cli import _progress_bar, print_warnings
     from .pipeline import load_pipeline
 
     sig = signal_from_args(a)
@@ -115,6 +115,7 @@ def cmd_control(a) -> int:
                        edit=None if a.mirror is None else {"mode": "mirror", "mirror": a.mirror})
     bar.close()
     motions = [("", res)] if a.mirror is None else [("", res.edited), ("_source", res.source)]
+    print_warnings(*(m for _, m in motions))
     for suffix, m in motions:
         for o in outs:
             path = o.with_name(f"{o.stem}{suffix}{o.suffix}")

@@ -24,6 +24,7 @@ from .models.denoiser import Denoiser
 from .models.io import load_denoiser, load_vae, vae_latent_checksums
 from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
+from .models.vocabulary import PromptCheck
 from .precision import bf16_supported
 from .motion.footlock import lock_feet_features
 from .motion.motion import Motion
@@ -41,12 +42,13 @@ Progress = Callable[[int, int], None]
 class Pipeline:
     def __init__(self, vae: MotionVAE, normalizer: Normalizer, latent_scale: float, denoiser: Denoiser,
                  text_encoder: TextEncoder, schedule: NoiseSchedule, canvas_frames: int, bf16: bool = True,
-                 source: str = ""):
+                 source: str = "", prompt_check: PromptCheck | None = None):
         self.vae, self.normalizer, self.latent_scale = vae.eval(), normalizer, latent_scale
         self.denoiser, self.text_encoder, self.schedule = denoiser.eval(), text_encoder, schedule
         self.canvas_frames = canvas_frames
         self.bf16 = bf16 and bf16_supported()
         self.source = source
+        self.prompt_check = prompt_check
 
     # ------------------------------------------------------------ validation
     @property
@@ -62,6 +64,12 @@ class Pipeline:
         if len(p) > MAX_PROMPT_CHARS:
             raise ValueError(f"prompt is {len(p)} characters long; the limit is {MAX_PROMPT_CHARS}")
         return p
+
+    def prompt_warnings(self, prompt: str) -> list[str]:
+        """What a user should know about how the model will take `prompt` (an action or words it
+        was not trained on, another language); empty when all is well or the model ships no
+        vocabulary. Every generated motion carries these as `motion.warnings`."""
+        return self.prompt_check.warnings(self.check_prompt(prompt)) if self.prompt_check else []
 
     def frames_for(self, seconds) -> int | None:
         """Requested duration -> frame count (a multiple of 4), or None for auto length."""
@@ -131,7 +139,8 @@ class Pipeline:
             if foot_lock:
                 joints, report = lock_feet_features(joints, f)
                 info["foot_lock"] = report.as_dict()
-            out.append(Motion(joints=joints, features=f, text=texts[b], seed=seed, info=info))
+            out.append(Motion(joints=joints, features=f, text=texts[b], seed=seed, info=info,
+                              warnings=self.prompt_warnings(texts[b]) if texts[b] else []))
         return out
 
     # ------------------------------------------------------------ generation
@@ -378,4 +387,4 @@ def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text
                               f"{encoder.name} encoder gives {encoder.dim}")
     schedule = NoiseSchedule(from_dict(DiffusionConfig, cfg["diffusion"]))
     return Pipeline(vae, norm, scale, denoiser, encoder, schedule, int(cfg["canvas_frames"]), bf16=bf16,
-                    source=str(root))
+                    source=str(root), prompt_check=PromptCheck.load(root, encoder))

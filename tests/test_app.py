@@ -366,3 +366,14 @@ def test_result_cache_is_bounded(tmp_path):
         r.cached(("k", i), lambda: i)
     assert r.cached(("k", 99), lambda: -1) == 99 and r.cached(("k", 0), lambda: -1) == -1
     assert isinstance(Session("k", tmp_path / "s").current, type(None))
+
+
+def test_prompt_warnings_lead_the_summary(client, pipe, tiny_dataset, monkeypatch):
+    from salad.models.vocabulary import PromptCheck, build_vocabulary
+
+    monkeypatch.setattr(pipe, "prompt_check", PromptCheck(build_vocabulary(tiny_dataset), pipe.text_encoder))
+    out = generate(client, "a person does a cartwheel", seconds=1.2, seed=11, steps=3)
+    first = out[2].splitlines()[0]
+    assert first.startswith("⚠") and "not trained on" in first and "closest known motion" in first
+    quiet = generate(client, "a person walks forward", seconds=1.2, seed=11, steps=3)
+    assert "⚠" not in quiet[2]

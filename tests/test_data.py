@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from salad.data import captions as cap
-from salad.data.build import Clip, assign_splits, build_bandai, dataset_stats
+from salad.data.build import SPLIT_PATTERN, Clip, assign_splits, build_bandai, dataset_stats
 from salad.data.dataset import (DatasetError, MotionDataset, WindowSampler, collate_motions, parse_caption_line)
 from salad.motion import representation as rep
 
@@ -48,6 +48,10 @@ def test_splits_are_stratified_and_fixed():
         for s in ("a", "b"):
             counts = Counter(a[c.name] for c in clips if c.content == k and c.style == s)
             assert counts["train"] == 32 and counts["val"] == 2 and counts["test"] == 6
+    # an action recorded once still lands in train, wherever the dealing put it
+    for offset in range(len(SPLIT_PATTERN)):
+        rare = [Clip(f"pad{i}", Path("x"), 1, "bow", "a") for i in range(offset)] + [Clip("k", Path("x"), 1, "kick", "a")]
+        assert assign_splits(rare, seed=0)["k"] == "train"
 
 
 def test_loader_batches_windows_and_subclips(tiny_dataset, tmp_path):

@@ -11,7 +11,7 @@ from salad.data.dataset import MotionDataset
 from salad.eval import metrics as M
 from salad.eval.classifiers import load_classifier
 from salad.eval.evaluator import Evaluator, load_evaluator
-from salad.eval.labels import side_of
+from salad.data.labels import side_of
 from salad.eval.physics import batch_physical_checks, physical_checks, physical_checks_features
 from salad.eval.t2m import evaluate_t2m, ground_truth_generator, write_report
 from salad.eval.train_classifier import ClassifierTask, ClassifierTrainConfig, train_classifier

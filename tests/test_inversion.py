@@ -234,7 +234,7 @@ def _labelled_dataset(root: Path) -> Path:
 
 def test_eval_real_edit_end_to_end(tiny_model, tmp_path):
     from salad.eval.classifiers import ClassifierConfig, MotionClassifier, save_classifier
-    from salad.eval.labels import SIDES
+    from salad.data.labels import SIDES
     from salad.eval.networks import MotionEncoderConfig
     from salad.eval.real_edit_bench import add_parser
 

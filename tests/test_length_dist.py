@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from salad.data.dataset import MotionDataset
-from salad.eval.labels import MotionLabels
+from salad.data.labels import MotionLabels
 from salad.eval.length_dist import (add_parser, compare_lengths, earth_movers, evaluate_lengths, generate_auto_length,
                                     js_divergence, length_bins, length_histogram, reachable_length)
 from salad.pipeline import load_pipeline

@@ -296,3 +296,83 @@ def test_bf16_runs_train_in_fp32_on_a_cpu_without_native_bf16(tiny_dataset, tmp_
     trainer = Trainer(VAETask(cfg), cfg.optim, cfg.run)
     with trainer.autocast():
         assert torch.is_autocast_enabled("cpu")
+
+
+def _labelled_copy(tiny_dataset, where: Path, kicks: int) -> Path:
+    """tiny_dataset with labels.json: its first `kicks` training motions re-captioned as kicks."""
+    import shutil
+    from salad.data.captions import caption_line
+
+    root = where / "labelled"
+    shutil.copytree(tiny_dataset, root)
+    names = (root / "train.txt").read_text().split()
+    labels = {}
+    for i, name in enumerate(names):
+        content = "kick" if i < kicks else "walk"
+        labels[name] = {"content": content, "style": "normal", "mirrored": False, "split": "train"}
+        if content == "kick":
+            (root / "texts" / f"{name}.txt").write_text(caption_line("a person kicks") + "\n")
+    (root / "labels.json").write_text(json.dumps(labels))
+    return root
+
+
+def _balance_config(root, tiny_model, out, balance):
+    from salad.diffusion.schedule import DiffusionConfig
+    from salad.models.denoiser import DenoiserConfig
+    from salad.training.configs import DenoiserTrainConfig
+
+    return DenoiserTrainConfig(
+        data=DataConfig(root=str(root), max_frames=40, balance=balance),
+        model=DenoiserConfig(latent_dim=8, dim=32, heads=4, ff_dim=64, layers=3, text_dim=384),
+        diffusion=DiffusionConfig(), optim=OptimConfig(batch_size=4, warmup_steps=2, max_steps=2),
+        run=RunConfig(out_dir=str(out), bf16=False, checkpoint_every=2), vae=str(tiny_model / "vae"),
+        text_dropout=0.0)
+
+
+@pytest.mark.parametrize("balance", [1.0, 0.5, 0.0])
+def test_class_balance_draws_rare_actions_as_configured(tiny_model, tiny_dataset, tmp_path, balance):
+    from salad.training.denoiser_task import DenoiserTask
+
+    root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)         # 2 kicks, 6 walks in train
+    task = DenoiserTask(_balance_config(root, tiny_model, tmp_path / "run", balance), show_progress=False)
+    drawn = []
+    bank_batch = task.text.batch
+    task.text.batch = lambda captions: (drawn.extend(captions), bank_batch(captions))[1]
+    rng = np.random.default_rng(0)
+    for auto in (0.0, 1.0):
+        task.cfg.auto_length_prob = auto
+        for _ in range(150):
+            task.batch(rng)
+    share = sum(c == "a person kicks" for c in drawn) / len(drawn)
+    expected = 2 ** balance / (2 ** balance + 6 ** balance)       # 0.25, 0.37, 0.5
+    assert abs(share - expected) < 0.05, (share, expected)
+
+
+def test_class_balance_needs_labels_and_a_valid_exponent(tiny_model, tiny_dataset, tmp_path):
+    from salad.config import ConfigError
+    from salad.training.denoiser_task import DenoiserTask
+
+    with pytest.raises(ConfigError, match="labels"):
+        DenoiserTask(_balance_config(tiny_dataset, tiny_model, tmp_path / "a", 0.5), show_progress=False)
+    root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)
+    with pytest.raises(ConfigError, match=r"data.balance must be in \[0, 1\]"):
+        DenoiserTask(_balance_config(root, tiny_model, tmp_path / "b", 1.5), show_progress=False)
+
+
+def test_a_run_saved_before_a_config_field_existed_resumes_at_its_default(tiny_model, tiny_dataset, tmp_path):
+    from salad.training.denoiser_task import DenoiserTask
+
+    root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)
+    cfg = _balance_config(root, tiny_model, tmp_path / "run", 1.0)
+    Trainer(DenoiserTask(cfg, show_progress=False), cfg.optim, cfg.run).fit()
+    saved = tmp_path / "run" / "state" / "config.json"
+    doc = json.loads(saved.read_text())
+    del doc["config"]["data"]["balance"]                            # as written before the field existed
+    saved.write_text(json.dumps(doc))
+    cfg.optim.max_steps = 3
+    resumed = Trainer(DenoiserTask(cfg, show_progress=False), cfg.optim, cfg.run)
+    resumed.fit()
+    assert resumed.step_count == 3
+    cfg.data.balance, cfg.optim.max_steps = 0.5, 4                  # a changed recipe is still refused
+    with pytest.raises(ValueError, match=r"different config \(differs in \['data'\]\)"):
+        Trainer(DenoiserTask(cfg, show_progress=False), cfg.optim, cfg.run).fit()

@@ -17,7 +17,7 @@ from ..settings import (
 )
 from .edit_panel import MIRROR_CHOICES, MODE_HELP, MODES
 from .generate_panel import foot_lock_checkbox
-from .summaries import MIRROR_NAMES, MODE_NAMES, escape_md, foot_lock_line, quoted
+from .summaries import MIRROR_NAMES, MODE_NAMES, escape_md, foot_lock_line, quoted, warnings_block
 
 INTRO = ("Edit a recorded motion by text. Describe the motion as it is (the source prompt): it is encoded and "
          "inverted under that prompt, so that sampling it back gives the motion again, and the edit then changes "
@@ -130,7 +130,7 @@ def real_markdown(result: Result) -> str:
     part, change = diff.most_changed
     t = result.timings
     waited = f", waited {t['wait_s']:.1f} s" if t.get("wait_s", 0) > 0.5 else ""
-    return (f"{' · '.join(what)} of {KIND_NAMES[r.input_kind]} {quoted(r.input_name)} described as "
+    return warnings_block(rec, result.motion) + (f"{' · '.join(what)} of {KIND_NAMES[r.input_kind]} {quoted(r.input_name)} described as "
             f"{quoted(r.source)}: {length}, {INVERSION_NAMES[r.inversion]} inversion, {r.steps} DDIM steps, "
             f"CFG {r.cfg:g}.  \n"
             f"**Reconstruction error (MPJPE): {100 * reconstruction_error_m(result):.1f} cm** against the input. "

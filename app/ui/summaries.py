@@ -30,6 +30,18 @@ def _sampling(req, sampler: str | None = None) -> str:
     return f"seed {req.seed}, {req.steps} {(sampler or 'ddim').upper()} steps, CFG {req.cfg:g}"
 
 
+def warnings_block(*motions) -> str:
+    """The prompt warnings (salad.models.vocabulary) of the motions, each once, as Markdown lines
+    to lead a summary with; "" when there are none."""
+    seen = []
+    for m in motions:
+        for w in getattr(m, "warnings", None) or []:
+            line = f"⚠ {quoted(m.text)}: {escape_md(w)}"
+            if line not in seen:
+                seen.append(line)
+    return "".join(f"{line}  \n" for line in seen)
+
+
 def foot_lock_line(motion) -> str:
     """One short line on what the foot lock did (salad.motion.footlock's report in
     motion.info["foot_lock"]), ending in a Markdown line break; "" when it was off."""
@@ -51,7 +63,7 @@ def summary_markdown(result: Result) -> str:
     """A generated motion."""
     r, m = result.request, result.motion
     length = "automatic length" if r.seconds is None else f"{r.seconds:g} s requested"
-    return (f"**{quoted(r.prompt)}** — {m.seconds:.1f} s ({m.frames} frames, {length}), "
+    return warnings_block(m) + (f"**{quoted(r.prompt)}** — {m.seconds:.1f} s ({m.frames} frames, {length}), "
             f"{_sampling(r, r.sampler)}.  \n" + foot_lock_line(m) + _timing(result, "Sampled"))
 
 
@@ -88,7 +100,7 @@ def edit_markdown(result: Result, word_map: list[int]) -> str:
              + f"; the pelvis path moved {100 * diff.root_change_m:.0f} cm on average.")
     line = " · ".join(what)
     k = 2 if line.startswith("**") else 0
-    return (line[:k] + line[k].upper() + line[k + 1:]
+    return (warnings_block(src, edited) + line[:k] + line[k].upper() + line[k + 1:]
             + f".  \n**{quoted(r.edited_prompt)}**: source {src.seconds:.1f} s ({src.frames} frames), edited "
             f"{edited.seconds:.1f} s ({edited.frames} frames), {_sampling(r, r.sampler)}.  \n{moved}  \n"
             + foot_lock_line(edited) + _timing(result, "Sampled both branches"))
@@ -114,5 +126,5 @@ def control_markdown(result: Result) -> str:
     info = m.info
     error = (f"**control error: mean {100 * info['control_mean_error_m']:.1f} cm, "
              f"max {100 * info['control_max_error_m']:.1f} cm**" if "control_mean_error_m" in info else "")
-    return (f"{describe_control(result)} · {quoted(r.prompt)} — {m.seconds:.1f} s ({m.frames} frames), "
+    return warnings_block(m) + (f"{describe_control(result)} · {quoted(r.prompt)} — {m.seconds:.1f} s ({m.frames} frames), "
             f"strength {r.strength:g}, {_sampling(r)}.  \n{error}  \n" + foot_lock_line(m) + _timing(result, "Sampled"))

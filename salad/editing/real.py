@@ -417,7 +417,7 @@ def add_parser(sub) -> None:
 
 
 def cmd_edit_real(a) -> int:
-    from ..cli import _progress_bar
+    from ..cli import _progress_bar, print_warnings
     from ..motion.motion import check_output_paths
     from ..pipeline import load_pipeline
 
@@ -439,6 +439,7 @@ def cmd_edit_real(a) -> int:
     res = edit_inverted(pipe, inv, a.target, a.mode, a.tau, reweight, a.mirror, a.self_inject,
                         correct=not a.no_correct, progress=update, foot_lock=not a.no_foot_lock)
     bar.close()
+    print_warnings(res.edited)
     err = mpjpe(res.source.joints, real.joints)
     notes = [f"{k}={v}" for k, v in real.info.items() if k in ("retargeted", "dropped_frames", "trimmed_from_frames")]
     print(f"{real.source}: {real.frames} frames; reconstruction MPJPE {100 * err:.2f} cm; inversion "

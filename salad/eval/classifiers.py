@@ -2,7 +2,7 @@
 
 The encoder is the evaluator's (movement convolutions + BiGRU over the 259 non-contact channels,
 normalised with the dataset's Mean/Std). "side" is the body side or turn direction an action refers to
-(none / left / right / both, see `salad.eval.labels.side_of`).
+(none / left / right / both, see `salad.data.labels.side_of`).
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from ..config import ConfigError
 from ..motion.representation import FEATURE_DIM
 from .evaluator import check_feature_list, embed_motion_batches
-from .labels import CONTENTS, SIDES, STYLES
+from ..data.labels import CONTENTS, SIDES, STYLES
 from .networks import CONTACT_CHANNELS, MotionEncoder, MotionEncoderConfig, load_scorer, save_scorer
 
 KIND = "classifier"

@@ -27,7 +27,7 @@ from ..motion import skeleton as sk
 from ..motion.footlock import lock_feet_features
 from ..motion.representation import FPS, features_to_joints
 from . import physics
-from .labels import read_labels
+from ..data.labels import read_labels
 from .paraphrases import HELD_OUT
 
 MIN_REFERENCE = 4

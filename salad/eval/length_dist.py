@@ -277,7 +277,7 @@ def cmd_eval_length(a) -> int:
     from ..cli import _progress_bar
     from ..data.dataset import MotionDataset
     from ..pipeline import load_pipeline
-    from .labels import read_labels
+    from ..data.labels import read_labels
 
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None)
     ds = MotionDataset(a.data, a.split, min_frames=MIN_FRAMES, max_frames=10 ** 9)

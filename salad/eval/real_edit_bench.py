@@ -24,7 +24,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..data.captions import swap_left_right
-from .labels import read_labels
+from ..data.labels import read_labels
 
 # torch-backed modules are imported where they are used, so that registering the command is cheap
 

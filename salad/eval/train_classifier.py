@@ -23,7 +23,7 @@ from ..config import apply_overrides, load_toml, to_dict
 from ..data.dataset import MotionDataset, load_normalizer
 from ..training.configs import OptimConfig, RunConfig
 from .classifiers import HEADS, KIND, Classifier, ClassifierConfig, MotionClassifier, load_classifier, save_classifier
-from .labels import MotionLabels, read_labels
+from ..data.labels import MotionLabels, read_labels
 from .networks import CONTACT_CHANNELS
 from .sampling import fixed_crop, normalized_batch, random_crop
 from .selection import best_score, log_validation

@@ -22,7 +22,7 @@ from ..data.dataset import MotionDataset, load_normalizer
 from ..models.text_bank import TextBank
 from ..training.configs import OptimConfig, RunConfig
 from .evaluator import KIND, Evaluator, EvaluatorConfig, TextMotionMatcher, load_evaluator, save_evaluator
-from .labels import read_labels
+from ..data.labels import read_labels
 from .metrics import r_precision
 from .networks import CONTACT_CHANNELS
 from .sampling import fixed_crop, normalized_batch, random_crop

@@ -35,6 +35,9 @@ class Motion:
     seed: int | None = None
     attention: Any = None            # AttentionMaps when generated with return_attention=True
     info: dict = field(default_factory=dict)
+    # how the model took the prompt: an action or words it was not trained on, another language
+    # (salad.models.vocabulary); empty when all is well
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def frames(self) -> int:

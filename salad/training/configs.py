@@ -15,6 +15,10 @@ class DataConfig:
     min_frames: int = 16
     max_frames: int = 196        # 9.8 s at 20 fps: the longest motion (and the auto-length canvas)
     window: int = 64             # VAE training windows
+    # How often each content class (labels.json) is drawn, as (its clip count)^balance: 1 = as
+    # recorded; 0.5 = square root, so an action recorded 4 times is drawn 1/12 as often as one
+    # recorded 600 times instead of 1/150; 0 = every class alike. Denoiser training only.
+    balance: float = 1.0
 
 
 @dataclass

@@ -17,9 +17,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..config import to_dict
+from ..config import ConfigError, to_dict
 from ..data.dataset import MotionDataset
 from ..diffusion.schedule import NoiseSchedule
+from ..data.labels import read_labels
 from ..models.denoiser import Denoiser
 from ..checkpoint import CheckpointError, load_state_strict
 from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum, vae_latent_checksums
@@ -52,6 +53,30 @@ class DenoiserTraining(nn.Module):
         return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}
 
 
+def class_weights(dataset: MotionDataset, balance: float) -> np.ndarray | None:
+    """Probability of drawing each item so that a content class with n clips is drawn in
+    proportion to n**balance (None: uniform, balance = 1)."""
+    if not 0.0 <= balance <= 1.0:
+        raise ConfigError(f"data.balance must be in [0, 1], got {balance}")
+    if balance == 1.0:
+        return None
+    try:
+        labels = read_labels(dataset.root)
+    except (FileNotFoundError, ValueError) as e:
+        raise ConfigError(f"data.balance = {balance} draws by content class, which needs the dataset's "
+                          f"labels ({e}); set data.balance = 1 to draw motions as recorded") from None
+    content = []
+    for it in dataset.items:
+        lab = labels.get(it.name.split("@")[0])
+        if lab is None:
+            raise ConfigError(f"{dataset.root}/labels.json: no labels for motion {it.name!r} (data.balance "
+                              "needs every training motion labelled)")
+        content.append(lab.content)
+    names, cls, counts = np.unique(content, return_inverse=True, return_counts=True)
+    w = counts[cls].astype(np.float64) ** (balance - 1.0)
+    return w / w.sum()
+
+
 class DenoiserTask:
     kind = "denoiser"
 
@@ -69,6 +94,7 @@ class DenoiserTask:
                                      normalizer=self.normalizer)
         self.canvas = (d.max_frames // 4) * 4
         self._by_length = np.argsort([min(len(it.features), self.canvas) for it in self.dataset.items], kind="stable")
+        self._weights = class_weights(self.dataset, d.balance)
         # VAE posteriors (mean, log-variance) over the canvas of motions that fit it, kept from
         # their first draw: the encoder is frozen and their input never changes, and the batched
         # encode was ~15% of a step (the cache grows to ~0.4 GB on the Bandai build). Longer
@@ -103,14 +129,20 @@ class DenoiserTask:
     def batch(self, rng: np.random.Generator) -> dict:
         B = self.cfg.optim.batch_size
         auto = bool(rng.random() < self.cfg.auto_length_prob) if self.cfg.model.length_modes else False
+        w, span = self._weights, min(len(self._by_length), 4 * B)
         if auto:
-            idx = rng.integers(0, len(self.dataset), size=B)
-        else:
+            idx = rng.integers(0, len(self.dataset), size=B) if w is None else rng.choice(len(w), size=B, p=w)
+        elif w is None:
             # Fixed-length batches draw motions of similar length (a random window of the
             # length-sorted list), so padding, which costs as much as motion, stays small.
-            span = min(len(self._by_length), 4 * B)
             start = int(rng.integers(0, len(self._by_length) - span + 1))
             idx = self._by_length[start + rng.integers(0, span, size=B)]
+        else:
+            # the window is centred on a motion drawn by weight, and drawn from by weight
+            anchor = int(rng.choice(len(w), p=w[self._by_length]))
+            start = min(max(anchor - span // 2, 0), len(self._by_length) - span)
+            window = self._by_length[start:start + span]
+            idx = window[rng.choice(span, size=B, p=w[window] / w[window].sum())]
         items = [self.dataset.items[i] for i in idx]
         # Every motion is encoded followed by padding with activation 0 (the way the VAE saw
         # motion ends in training) on the whole canvas; fixed-length rows then keep only their

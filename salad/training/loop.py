@@ -4,6 +4,7 @@ multi-process data parallelism through torch.distributed (launched by torchrun).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import os
 import random
@@ -73,6 +74,18 @@ def _unflatten_optimizer(tensors: dict[str, torch.Tensor], doc: dict) -> dict:
         pid, key = flat.split(".", 1)
         state.setdefault(int(pid), {})[key] = value
     return {"state": state, "param_groups": doc["param_groups"]}
+
+
+def _with_defaults(saved: dict, defaults: dict) -> dict:
+    """A config saved before a field existed reads as that field's default, which is what the
+    run trained with, so adding a field does not orphan the runs before it."""
+    out = dict(saved)
+    for key, value in defaults.items():
+        if key not in out:
+            out[key] = value
+        elif isinstance(value, dict) and isinstance(out[key], dict):
+            out[key] = _with_defaults(out[key], value)
+    return out
 
 
 class Trainer:
@@ -159,7 +172,11 @@ class Trainer:
             return cfg
 
         mine = comparable(json.loads(json.dumps(self.task.config_dict())))
-        theirs = comparable(doc["config"])
+        theirs = doc["config"]
+        cfg = getattr(self.task, "cfg", None)
+        if dataclasses.is_dataclass(cfg):
+            theirs = _with_defaults(theirs, json.loads(json.dumps(dataclasses.asdict(type(cfg)()))))
+        theirs = comparable(theirs)
         if mine != theirs:
             changed = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
             raise CheckpointError(f"{path}: was trained with a different config (differs in {changed}); "

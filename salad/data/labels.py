@@ -5,7 +5,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..data.captions import CONTENT_PHRASES, MIRRORED_CONTENT, STYLE_PHRASES
+from .captions import CONTENT_PHRASES, MIRRORED_CONTENT, STYLE_PHRASES
 
 CONTENTS: tuple[str, ...] = tuple(sorted(CONTENT_PHRASES))
 STYLES: tuple[str, ...] = tuple(sorted(STYLE_PHRASES))

@@ -1,0 +1,129 @@
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from salad.eval.paraphrases import HELD_OUT
+from salad.models.vocabulary import (ACTION_SIMILARITY, FEATURES_FILE, VOCABULARY_FILE, PromptCheck,
+                                     build_vocabulary, save_vocabulary)
+
+REPO = Path(__file__).resolve().parents[1]
+EMBEDDED = REPO / "assets" / "model"
+
+# Requests the Bandai captures hold nothing like (never used to set ACTION_SIMILARITY's neighbours'
+# wording: each is checked for a warning of some kind, not for the action warning alone).
+UNTRAINED = ["a person does a cartwheel", "a person jumps up and down", "a person sits down on a chair",
+             "someone swims", "a man climbs a ladder", "a person throws a ball", "a person does push-ups",
+             "a person kneels", "a person lies down on the floor", "a person crawls on hands and knees",
+             "a person juggles", "a woman skips rope", "a person picks something up from the floor",
+             "a person stretches their arms", "a person claps their hands", "a person spins around",
+             "someone drinks from a cup", "a man does a backflip", "a person salutes"]
+FOREIGN = ["une personne marche en avant", "eine Person geht vorwärts", "una persona camina hacia adelante",
+           "le personnage court rapidement", "人が歩く"]
+
+
+@pytest.fixture(scope="module")
+def embedded_check():
+    from salad.models.text import load_text_encoder
+
+    check = PromptCheck.load(EMBEDDED, load_text_encoder("minilm"))
+    assert check is not None, "the embedded model ships vocabulary.json (salad data vocabulary)"
+    return check
+
+
+def test_the_embedded_vocabulary_names_what_the_model_was_trained_on(embedded_check):
+    v = embedded_check.vocab
+    assert {"walk", "run", "kick", "bow", "wave-left-hand"} <= set(v.actions)
+    assert v.actions["kick"] == "a person kicks" and "{" not in " ".join(v.actions.values())
+    assert {"happily", "proudly", "wearily"} <= set(v.styles)
+    assert embedded_check._features is not None, "the shipped features load without encoding anything"
+    assert embedded_check.features.shape == (len(v.examples), 384)
+
+
+def test_plain_trained_prompts_carry_no_warning(embedded_check):
+    for prompt in ("a person walks forward", "a person waves their left hand", "someone runs forward happily",
+                   "a man bows politely", "a person kicks"):
+        assert embedded_check.warnings(prompt) == [], prompt
+
+
+def test_untrained_actions_and_other_languages_are_flagged_with_the_nearest_known_motion(embedded_check):
+    for prompt in UNTRAINED:
+        warnings = embedded_check.warnings(prompt)
+        assert warnings, prompt
+    cartwheel = embedded_check.warnings("a person does a cartwheel")
+    assert any("action the model was not trained on" in w and "closest known motion: 'a person" in w
+               for w in cartwheel)
+    assert any("'cartwheel'" in w for w in cartwheel)
+    for prompt in FOREIGN:
+        warnings = embedded_check.warnings(prompt)
+        assert len(warnings) == 1 and "does not read as English" in warnings[0], (prompt, warnings)
+        assert "closest known motion" in warnings[0]
+    lazily = embedded_check.warnings("a person walks forward lazily")
+    assert len(lazily) == 1 and "'lazily'" in lazily[0] and "happily" in lazily[0], "an unknown adverb lists known ones"
+
+
+def test_held_out_paraphrases_of_trained_actions_are_rarely_called_untrained(embedded_check):
+    prompts = [p for ps in HELD_OUT.values() for p in ps]
+    flagged = [p for p in prompts if embedded_check.nearest(p, 1)[0][1] < ACTION_SIMILARITY]
+    assert len(flagged) <= 3, flagged
+    assert embedded_check.nearest("someone gives a polite bow", 1)[0][0] == "a person bows"
+
+
+def test_generated_motions_carry_the_warnings(embedded_check):
+    from salad.pipeline import load_pipeline
+
+    pipe = load_pipeline()
+    m = pipe.generate("a person does a cartwheel", seconds=1.0, steps=2)
+    assert m.warnings == embedded_check.warnings("a person does a cartwheel") and m.warnings
+    assert pipe.generate("a person walks forward", seconds=1.0, steps=2).warnings == []
+    res = pipe.edit("a person walks forward", "a person swims forward", mode="swap", seconds=1.0, steps=2)
+    assert res.source.warnings == [] and res.edited.warnings
+
+
+def test_vocabulary_of_an_unlabelled_dataset_round_trips(tiny_dataset, tmp_path):
+    from salad.models.text import load_text_encoder
+
+    vocab = build_vocabulary(tiny_dataset)
+    assert "a person walks forward" in vocab.actions and "walks" in vocab.words
+    encoder = load_text_encoder("minilm")
+    save_vocabulary(vocab, encoder, tmp_path)
+    check = PromptCheck.load(tmp_path, encoder)
+    assert check.vocab.to_json() == vocab.to_json() and check._features is not None
+    assert check.nearest("a person walks forward", 1)[0] == ("a person walks forward", pytest.approx(1.0, abs=1e-2))
+    assert check.warnings("a person walks forward") == []
+    assert check.warnings("a person waves their left hand")          # no wave in the tiny walks
+    # damaged or missing features are recomputed
+    doc = json.loads((tmp_path / VOCABULARY_FILE).read_text())
+    (tmp_path / FEATURES_FILE).write_bytes(b"not safetensors")
+    damaged = PromptCheck.load(tmp_path, encoder)
+    assert damaged._features is None and damaged.features.shape[0] == len(doc["examples"])
+    torch.testing.assert_close(damaged.features, check.features, atol=2e-3, rtol=0)   # stored as fp16
+    (tmp_path / FEATURES_FILE).unlink()
+    assert PromptCheck.load(tmp_path, encoder).warnings("a person walks forward") == []
+    (tmp_path / VOCABULARY_FILE).write_text("{broken")
+    with pytest.raises(ValueError, match="unreadable vocabulary"):
+        PromptCheck.load(tmp_path, encoder)
+    assert PromptCheck.load(tmp_path / "nothing", encoder) is None
+
+
+def test_cli_writes_the_vocabulary_and_generate_prints_warnings(tiny_model, tiny_dataset, tmp_path):
+    model = tmp_path / "model"
+    shutil.copytree(tiny_model, model)
+    run = lambda *args: subprocess.run([sys.executable, "-m", "salad.cli", *args], cwd=REPO,
+                                       capture_output=True, text=True, timeout=600)
+    made = run("data", "vocabulary", str(tiny_dataset), "--model", str(model))
+    assert made.returncode == 0, made.stderr
+    assert (model / VOCABULARY_FILE).is_file() and (model / FEATURES_FILE).is_file()
+    out = run("generate", "a person does a cartwheel", "-o", str(tmp_path / "c.npy"), "--model", str(model),
+              "--steps", "2", "--seconds", "1")
+    assert out.returncode == 0, out.stderr
+    assert "warning: 'a person does a cartwheel':" in out.stderr and "closest known motion" in out.stderr
+    quiet = run("generate", "a person walks forward", "-o", str(tmp_path / "w.npy"), "--model", str(model),
+                "--steps", "2", "--seconds", "1")
+    assert quiet.returncode == 0 and "warning:" not in quiet.stderr
+    bad = run("data", "vocabulary", str(tmp_path / "missing"), "--model", str(model))
+    assert bad.returncode == 2 and "salad: error:" in bad.stderr
