@@ -182,6 +182,13 @@ def reference_clips(data_root: str | Path, cls: FidelityClass, labels: dict, spl
 
 # ---------------------------------------------------------------- the benchmark
 
+def _shown(path: str) -> str:
+    """A model path as a report shows it: relative to the repository when inside it."""
+    from ..pipeline import REPO_ROOT
+    p = Path(path).resolve()
+    return str(p.relative_to(REPO_ROOT)) if p.is_relative_to(REPO_ROOT) else str(path)
+
+
 def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int = 50, cfg: float = 7.5,
                       sampler: str = "ddim", classes=None, split: str = "test",
                       progress: Callable[[int, int], None] | None = None) -> dict:
@@ -223,7 +230,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int = 
         row["real_contact_slide_share"] = round(_median(real, "contact_slide_share"), 4)
         rows.append(row)
     return {"rows": rows, "rules": RULES, "settings": {
-        "seeds": seeds, "steps": steps, "cfg": cfg, "sampler": sampler, "split": split, "model": pipe.source,
+        "seeds": seeds, "steps": steps, "cfg": cfg, "sampler": sampler, "split": split, "model": _shown(pipe.source),
         "length": "auto", "seconds": round(time.perf_counter() - started, 1)},
         "summary": {v: {"passed": sum(r[v]["pass"] for r in rows), "classes": len(rows)} for v in ("raw", "clean")}}
 
