@@ -63,7 +63,7 @@ def test_a_fidelity_run_with_the_embedded_model(tmp_path):
         {n: {"content": "walk", "style": "normal", "split": split[n]} for n in names}))
     res = evaluate_fidelity(load_pipeline(), root, seeds=1, steps=4, classes=["walk", "kick"])
     (row,) = res["rows"]                                        # kick has no clips in this dataset
-    assert row["class"] == "walk" and row["reference"] == {"clips": 12, "splits": "all"}
+    assert row["class"] == "walk" and row["reference"] == {"clips": 12, "splits": "all"}   # 2 test clips only
     assert len(row["samples"]) == len(HELD_OUT["walk"])
     for variant in ("raw", "clean"):
         assert set(row[variant]["checks"]) == set(checks_for("walk"))
@@ -72,3 +72,31 @@ def test_a_fidelity_run_with_the_embedded_model(tmp_path):
     assert row["raw"]["checks"]["duration_s"] == row["clean"]["checks"]["duration_s"]
     report = report_markdown(res)
     assert "| walk | 12 (all) |" in report and "after the foot lock" in report
+
+
+def test_reference_clips_follow_the_prompts_style_and_widen_only_when_too_few(tmp_path):
+    from salad.data.labels import read_labels
+    from salad.eval.fidelity import fidelity_classes, reference_clips
+
+    root = write_tiny_dataset(tmp_path / "data", n=16)
+    split = {n: f for f in ("train", "val", "test") for n in (root / f"{f}.txt").read_text().split()}
+    names = sorted(split)
+    styles = {n: ("normal" if i % 2 else "elderly") for i, n in enumerate(names)}
+    for n in names[:4]:
+        split[n] = "test"                                      # 2 normal and 2 elderly test clips
+    (root / "labels.json").write_text(json.dumps(
+        {n: {"content": "walk", "style": styles[n], "split": split[n]} for n in names}))
+    labels = read_labels(root)
+    walk = next(c for c in fidelity_classes(["walk"]))
+    elderly = next(c for c in fidelity_classes(["walk/elderly"]))
+    clips, used = reference_clips(root, walk, labels)
+    normal_all = sum(1 for n in names if styles[n] == "normal")
+    assert used == "all" and len(clips) == normal_all           # too few normal test clips: every split
+    clips, used = reference_clips(root, elderly, labels)
+    assert used == "all" and len(clips) == len(names) - normal_all
+    for n in names[4:10]:
+        split[n] = "test"
+    (root / "labels.json").write_text(json.dumps(
+        {n: {"content": "walk", "style": styles[n], "split": split[n]} for n in names}))
+    clips, used = reference_clips(root, walk, read_labels(root))
+    assert used == "test" and len(clips) == sum(1 for n in names if split[n] == "test" and styles[n] == "normal")
