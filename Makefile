@@ -36,6 +36,7 @@ demo: setup
 	$(BIN)/python -m app
 
 test: setup
+	$(BIN)/ruff check salad app tests
 	SALAD_SHARED_DATA=$(SHARED_DATA) $(BIN)/python -m pytest -q -rs --junitxml=test-artifacts/junit.xml
 
 test-fast: setup

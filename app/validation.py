@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from salad.motion.representation import FPS
-from salad.pipeline import EDIT_MODES, MIN_AUTO_FRAMES
+from salad.editing.build import EDIT_MODES
+from salad.pipeline import MIN_AUTO_FRAMES
 
 from .settings import (
     DEFAULT_SELF_INJECT, DEFAULT_TAU, MAX_CFG, MAX_PATH_SPEED, MAX_REWEIGHT, MAX_SEED, MAX_STEPS, MAX_STRENGTH,

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import math
-from pathlib import Path
 
 from .motion.control import (PATH_PRESETS, ControlSignal, control_errors, crop_signal, lower_body_signal, parse_points,
                              path_signal, preset_path, read_keyframes, read_mola_control, read_motion_joints,

@@ -18,7 +18,7 @@ import torch
 from .checkpoint import CheckpointError
 from .diffusion.sampling import sample
 from .diffusion.schedule import SAMPLERS, DiffusionConfig, NoiseSchedule
-from .editing.build import EDIT_MODES, build_edit, edit_arguments
+from .editing.build import build_edit, edit_arguments
 from .config import from_dict
 from .models.denoiser import Denoiser
 from .models.io import load_denoiser, load_vae, vae_latent_checksums

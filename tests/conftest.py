@@ -49,7 +49,7 @@ def synthetic_walk(frames: int = 60, seed: int = 0, speed: float = 1.2, turn: fl
     from salad.motion import skeleton as sk
     from salad.motion.representation import forward_kinematics
     import torch
-    from salad.motion.quaternion import qmul, yaw_quat, qbetween
+    from salad.motion.quaternion import yaw_quat
 
     rng = np.random.default_rng(seed)
     lengths = np.array([0, .11, .11, .12, .38, .38, .14, .40, .40, .06, .14, .14,

@@ -133,7 +133,7 @@ def test_every_edit_mode_and_their_compositions(client, kwargs, expect):
 
 def test_an_added_word_has_no_source_map(client):
     target = "a person waves their right hand happily and slowly"
-    out = edit(client, mode="refine", target=target)
+    edit(client, mode="refine", target=target)
     src, dst = client.predict(target.split().index("slowly"), api_name="/edit_attention")
     assert "was added" in json.dumps(plot(src)) and "“slowly”" in plot(dst)["layout"]["title"]["text"]
 

@@ -169,9 +169,9 @@ def set_slider(page, selector: str, value) -> None:
 
 def wait_for_new_video(page, selector: str, previous: str | None, width: int) -> str:
     """Wait until the <video> under `selector` shows a new file of the given width; returns its src."""
-    page.wait_for_function(f"""([sel, prev, width]) => {{
+    page.wait_for_function("""([sel, prev, width]) => {
         const v = document.querySelector(sel);
-        return v && v.src && v.src !== prev && v.videoWidth === width; }}""", arg=[selector, previous, width])
+        return v && v.src && v.src !== prev && v.videoWidth === width; }""", arg=[selector, previous, width])
     return page.evaluate(f"() => document.querySelector({selector!r}).src")
 
 

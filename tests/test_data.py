@@ -5,7 +5,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from salad.data import captions as cap
 from salad.data.build import SPLIT_PATTERN, Clip, assign_splits, build_bandai, dataset_stats

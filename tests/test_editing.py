@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from salad.editing.align import align_tokens, align_words
-from salad.editing.controllers import (AttentionEdit, KeepSource, Mirror, Refine, Reweight, Rows, WordSwap,
+from salad.editing.controllers import (AttentionEdit, KeepSource, Mirror, Refine, Reweight, WordSwap,
                                        cfg_rows)
 from salad.editing.store import AttentionStore, to_motion_rate
 from salad.models.attention import AttentionCall

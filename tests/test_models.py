@@ -1,9 +1,4 @@
 import json
-import math
-import os
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np

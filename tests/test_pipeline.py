@@ -5,7 +5,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from salad.checkpoint import CheckpointError
 from salad.pipeline import end_of_motion, load_pipeline

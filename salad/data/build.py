@@ -37,7 +37,7 @@ from ..files import atomic_write_text
 from ..motion import representation as rep
 from ..motion.bvh import BvhError, load_bvh
 from .captions import MIRRORED_CONTENT, caption_line, captions_for, swap_left_right
-from ..files import atomic_write, atomic_write_text
+from ..files import atomic_write
 
 SPLIT_PATTERN = "TTTXTTTTTTXTTTVTTXTT"   # 16 train, 1 val, 3 test in every 20 clips of a stratum run
 SPLIT_NAMES = {"T": "train", "V": "val", "X": "test"}

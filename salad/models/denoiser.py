@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 
 from .attention import CROSS, SKELETAL, TEMPORAL, Attention
 from .dropout import Dropout

@@ -37,7 +37,6 @@ class DenoiserTraining(nn.Module):
 
     def forward(self, batch: dict):
         z0 = batch["latents"]
-        B = z0.shape[0]
         t = batch["timesteps"]
         noise = batch["noise"]
         zt = self.schedule.add_noise(z0, noise, t)
