@@ -93,9 +93,12 @@ def launch(app: StudioApp, settings: Settings, block: bool = True) -> str:
     # unless allowed; allow exactly the sessions folder when it lies elsewhere.
     root = app.workspace.sessions
     allowed = [str(root)] if _outside(root, tempfile.gettempdir()) and _outside(root, os.getcwd()) else None
+    # show_error: a refusal Gradio makes itself (too few inputs, a value its component cannot read) reaches
+    # API clients as its message rather than {"error": null}; the handlers' own errors always did, and their
+    # internal failures are already reduced to a generic message (app.ui.handlers.guarded).
     _, url, _ = app.demo.launch(
         server_name=settings.host, server_port=settings.port, share=False, prevent_thread_lock=not block,
-        show_error=False, allowed_paths=allowed, max_file_size=MAX_UPLOAD, ssr_mode=False, pwa=False,
+        show_error=True, allowed_paths=allowed, max_file_size=MAX_UPLOAD, ssr_mode=False, pwa=False,
         mcp_server=False, enable_monitoring=False, quiet=True, theme=THEME, css=CSS,
         footer_links=["api"], state_session_capacity=1000)
     return url

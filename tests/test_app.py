@@ -19,6 +19,7 @@ from gradio_client import Client
 from gradio_client.exceptions import AppError
 
 from salad.editing.store import AttentionMaps
+from salad.motion.bvh import load_bvh
 
 from app.figures import frames_to_restyle_slider
 from app.session import KEEP_RESULTS, Result, Session
@@ -82,6 +83,7 @@ def test_generate_returns_video_figure_and_files(client, pipe):
         np.testing.assert_array_equal(z["joints"], joints)
         assert z["features"].shape == (32, 263)
     assert by_ext[".bvh"].read_text().startswith("HIERARCHY")
+    assert load_bvh(by_ext[".bvh"]).scale == 0.01                      # downloads are in centimetres
     expected = pipe.generate("a person waves their right hand happily", seconds=1.6, seed=3, steps=STEPS,
                              return_attention=True)
     np.testing.assert_allclose(joints, expected.joints, atol=1e-3)
@@ -377,3 +379,25 @@ def test_prompt_warnings_lead_the_summary(client, pipe, tiny_dataset, monkeypatc
     assert first.startswith("⚠") and "not trained on" in first and "closest known motion" in first
     quiet = generate(client, "a person walks forward", seconds=1.2, seed=11, steps=3)
     assert "⚠" not in quiet[2]
+
+
+@pytest.mark.parametrize("data, message", [
+    (["a person walks", True, 1.0, 0, STEPS, 7.5, "euler", True], "sampler must be one of ddim, dpm"),
+    (["a person walks", True, 1.0, 0, "many", 7.5, "ddim", True], "steps"),
+    (["a person walks", True, 1.0, 0, STEPS, 7.5, "ddim"], "enough input values"),   # the foot-lock switch left out
+])
+def test_raw_http_clients_get_the_error_message(server, data, message):
+    """What a client without gradio_client sees: the two-step /call API with server-sent events."""
+    import httpx
+
+    base = server[0].rstrip("/")
+    with httpx.Client(timeout=120) as http:
+        posted = http.post(f"{base}/gradio_api/call/generate", json={"data": data})
+        if posted.status_code != 200:                 # refused at once: the reason is in the body
+            assert message in posted.text.lower() or message in posted.text
+            return
+        event_id = posted.json()["event_id"]
+        stream = http.get(f"{base}/gradio_api/call/generate/{event_id}").text
+    assert "event: error" in stream
+    payload = stream.split("event: error", 1)[1].split("data:", 1)[1].strip().splitlines()[0]
+    assert payload != "null" and message in payload.lower(), payload
