@@ -63,13 +63,16 @@ def test_a_fidelity_run_with_the_embedded_model(tmp_path):
         {n: {"content": "walk", "style": "normal", "split": split[n]} for n in names}))
     res = evaluate_fidelity(load_pipeline(), root, seeds=1, steps=4, classes=["walk", "kick"])
     (row,) = res["rows"]                                        # kick has no clips in this dataset
-    assert row["class"] == "walk" and row["reference"] == {"clips": 12, "splits": "all"}   # 2 test clips only
+    assert row["class"] == "walk" and row["reference"]["clips"] == 12 and row["reference"]["splits"] == "all"
+    assert len(row["reference"]["measures"]) == 12                      # 2 test clips only: all splits
+    assert set(row["samples"][0]["raw"]) == set(row["samples"][0]["clean"]) >= set(checks_for("walk"))
     assert len(row["samples"]) == len(HELD_OUT["walk"])
     for variant in ("raw", "clean"):
         assert set(row[variant]["checks"]) == set(checks_for("walk"))
         assert row[variant]["pass"] == all(c["pass"] for c in row[variant]["checks"].values())
     # the foot lock changes only the feet: durations and the root path stay the same
     assert row["raw"]["checks"]["duration_s"] == row["clean"]["checks"]["duration_s"]
+    json.dumps(res)                                                     # results.json holds all of it
     report = report_markdown(res)
     assert "| walk | 12 (all) |" in report and "after the foot lock" in report
 
