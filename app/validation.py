@@ -30,7 +30,7 @@ class GenerateRequest:
     steps: int
     cfg: float
     sampler: str
-    foot_lock: bool = True      # pin planted feet after decoding (salad.motion.footlock)
+    foot_lock: bool = True      # clean-up after decoding: rigid bones, planted feet pinned (salad.motion.cleanup)
 
 
 @dataclass(frozen=True)

@@ -86,6 +86,14 @@ class _LazyBar:
             self.bar.close()
 
 
+def add_bvh_units(parser: argparse.ArgumentParser) -> None:
+    """--bvh-units, for every command that can write BVH files."""
+    # Spelled out to keep this module free of torch; tests check it against salad.motion.bvh_export.UNITS_PER_METRE.
+    parser.add_argument("--bvh-units", choices=("cm", "m"), default="cm",
+                        help="units of .bvh files: cm (default; Maya and MotionBuilder read them as is, Blender "
+                             "with Scale 0.01) or m (Blender at its default scale)")
+
+
 def _progress_bar(desc: str):
     bar = _LazyBar(desc)
     return bar, bar.update
@@ -128,7 +136,7 @@ def cmd_generate(a) -> int:
     for k, m in enumerate(motions):
         for o in outs:
             path = o if len(motions) == 1 else o.with_name(f"{o.stem}_{k}{o.suffix}")
-            m.save(path)
+            m.save(path, bvh_units=a.bvh_units)
             print(f"wrote {path} ({m.frames} frames, {m.seconds:.2f} s)")
     return 0
 
@@ -154,7 +162,7 @@ def cmd_edit(a) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for name, m in (("source", res.source), ("edited", res.edited)):
         m.save(out / f"{name}.npy")
-        m.save(out / f"{name}.bvh")
+        m.save(out / f"{name}.bvh", bvh_units=a.bvh_units)
     render_side_by_side([res.source.joints, res.edited.joints], [f"source: {res.source.text}", f"edited ({a.mode})"],
                         out / "side_by_side.mp4")
     print(f"wrote {out}/source.npy|bvh, edited.npy|bvh and side_by_side.mp4")
@@ -305,6 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     g.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
     g.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
+    add_bvh_units(g)
     g.set_defaults(func=cmd_generate)
 
     e = sub.add_parser("edit", help="zero-shot edit by attention modulation; writes NPY, BVH and a side-by-side MP4")
@@ -324,6 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--model", default=None)
     e.add_argument("--fp32", action="store_true")
     e.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
+    add_bvh_units(e)
     e.set_defaults(func=cmd_edit)
 
     bn = sub.add_parser("bench", help="measure generation speed, solver accuracy and where the time goes")

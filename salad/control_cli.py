@@ -16,6 +16,8 @@ SOURCES = ("path", "path_preset", "mola", "targets", "keyframes", "lower_body_fr
 
 def add_parser(sub) -> argparse.ArgumentParser:
     """Register `control` on the CLI's subparsers."""
+    from .cli import add_bvh_units
+
     c = sub.add_parser("control", help="guided generation: follow a pelvis path, keyframes, targets or a lower body")
     c.add_argument("prompt")
     src = c.add_mutually_exclusive_group(required=True)
@@ -48,6 +50,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     c.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     c.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
     c.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
+    add_bvh_units(c)
     c.set_defaults(func=cmd_control)
     return c
 
@@ -118,7 +121,7 @@ def cmd_control(a) -> int:
     for suffix, m in motions:
         for o in outs:
             path = o.with_name(f"{o.stem}{suffix}{o.suffix}")
-            m.save(path)
+            m.save(path, bvh_units=a.bvh_units)
             print(f"wrote {path} ({m.frames} frames, {m.seconds:.2f} s)")
         print(("source " if suffix else "") + _error_line(m, sig))
     return 0

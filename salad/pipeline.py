@@ -26,7 +26,7 @@ from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
 from .models.vocabulary import PromptCheck
 from .precision import bf16_supported
-from .motion.footlock import lock_feet_features
+from .motion.cleanup import clean_motion
 from .motion.motion import Motion
 from .motion.representation import FPS, Normalizer, features_to_joints
 
@@ -125,8 +125,9 @@ class Pipeline:
     def decode(self, latents: torch.Tensor, frames: int | None, texts: list[str], seed: int,
                foot_lock: bool = True) -> list[Motion]:
         """Latents -> motions; with frames=None each motion ends where its activation drops.
-        foot_lock pins the feet the decoder marks as planted (salad.motion.footlock): the joints
-        carry the clean-up, the features stay the decoder's output, info["foot_lock"] says what moved."""
+        foot_lock cleans the joints (salad.motion.cleanup: bones held at constant length, the feet the
+        decoder marks as planted pinned): the joints carry the clean-up, the features stay the
+        decoder's output, info["foot_lock"] says what moved."""
         feats, act_logits = self.vae.decode(latents / self.latent_scale)
         feats = self.normalizer.denormalize(feats.float()).numpy()
         out = []
@@ -137,8 +138,7 @@ class Pipeline:
             f = feats[b, :n]
             joints, info = features_to_joints(f), {"auto_length": frames is None}
             if foot_lock:
-                joints, report = lock_feet_features(joints, f)
-                info["foot_lock"] = report.as_dict()
+                joints, info["foot_lock"] = clean_motion(joints, f)
             out.append(Motion(joints=joints, features=f, text=texts[b], seed=seed, info=info,
                               warnings=self.prompt_warnings(texts[b]) if texts[b] else []))
         return out

@@ -38,7 +38,7 @@ def write_folder(root: Path, walks: dict) -> Path:
     (root / "w2.txt").write_text("a person turns right while walking##0.0#0.0\n")
     (root / "w3.txt").write_text("a person walks and waves the left hand\n")
     fast = synthetic_walk(120, seed=9)
-    (root / "sub" / "mixamo.bvh").write_text(renamed(bvh_text(fast * TALL * 100, fps=40.0), MIXAMO_MAPPING))
+    (root / "sub" / "mixamo.bvh").write_text(renamed(bvh_text(fast * TALL, fps=40.0, units="cm"), MIXAMO_MAPPING))
     save_bvh(root / "uncaptioned.bvh", walks["w0"])
     broken = bvh_text(walks["w1"])
     (root / "broken.bvh").write_text(broken[: len(broken) // 2])

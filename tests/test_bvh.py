@@ -1,7 +1,11 @@
 """BVH import and export: parsing, forward kinematics, name mapping, units, resampling,
-malformed input, round trips, and real Bandai-Namco clips."""
+malformed input, round trips (our reader, bvhio, and Blender where installed), and real
+Bandai-Namco clips."""
+import json
 import math
 import os
+import shutil
+import subprocess
 import tarfile
 
 import numpy as np
@@ -9,12 +13,15 @@ import pytest
 import torch
 
 from conftest import synthetic_walk
+from salad.cli import build_parser
+from salad.motion import representation as rep
 from salad.motion import skeleton as sk
 from salad.motion.bvh import (
-    BANDAI_MAPPING, MAPPINGS, BvhClip, BvhError, bvh_text, detect_scale, load_bvh, parse_bvh,
-    resample, save_bvh,
+    BANDAI_MAPPING, MAPPINGS, UNITS_PER_METRE, BvhClip, BvhError, bvh_text, detect_scale, load_bvh,
+    parse_bvh, resample, save_bvh,
 )
 from salad.motion.bvh_export import local_rotations, rest_offsets
+from salad.motion.motion import Motion
 
 
 def rx(a):
@@ -238,6 +245,13 @@ def walk():
 
 
 @pytest.fixture(scope="module")
+def represented_walk():
+    """A walk as the model's outputs are: decoded from the 263-d representation."""
+    j = rep.canonicalize(synthetic_walk(60, turn=0.6).astype(np.float64))
+    return rep.features_to_joints(rep.joints_to_features(j)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
 def walk_text(walk):
     return bvh_text(walk)
 
@@ -303,7 +317,7 @@ def test_custom_mapping_with_blend(tmp_path, walk, walk_text):
 @pytest.mark.parametrize("factor,scale", [(1.0, 1.0), (100.0, 0.01), (1000.0, 0.001)])
 def test_units_are_detected(tmp_path, walk, factor, scale):
     path = tmp_path / "units.bvh"
-    save_bvh(path, walk * factor)
+    save_bvh(path, walk * factor, units="m")
     clip = load_bvh(path)
     assert clip.scale == scale
     assert np.abs(clip.joints - walk).max() < 1e-4
@@ -312,7 +326,7 @@ def test_units_are_detected(tmp_path, walk, factor, scale):
 
 def test_explicit_scale_overrides_detection(tmp_path, walk):
     path = tmp_path / "cm.bvh"
-    save_bvh(path, walk * 100)
+    save_bvh(path, walk)
     clip = load_bvh(path, scale=1.0)
     assert clip.scale == 1.0 and np.abs(clip.joints - walk * 100).max() < 1e-2
     with pytest.raises(BvhError, match="scale"):
@@ -392,6 +406,92 @@ def test_round_trip_of_a_non_rigid_motion_stays_close(tmp_path, walk):
     assert err.max() < 0.02 and err.mean() < 0.01
 
 
+def _round_trip_error(tmp_path, joints, units="cm"):
+    """Distances (T, 22) in metres between joints and their export re-read by our reader."""
+    path = tmp_path / f"round_trip_{units}.bvh"
+    save_bvh(path, joints, units=units)
+    return np.linalg.norm(load_bvh(path).joints - joints, axis=-1)
+
+
+@pytest.mark.parametrize("units", ["cm", "m"])
+def test_round_trip_of_the_representations_joints_is_within_a_millimetre(tmp_path, represented_walk, units):
+    assert _round_trip_error(tmp_path, represented_walk, units).max() < 1e-3
+
+
+@pytest.mark.shared_data
+def test_round_trip_of_real_humanml3d_joints_is_within_a_millimetre(tmp_path, hml_sample):
+    joints = rep.features_to_joints(hml_sample["features"])
+    assert _round_trip_error(tmp_path, joints).max() < 1e-3
+
+
+def test_centimetre_and_metre_files_read_back_alike(tmp_path, represented_walk):
+    cm, m = tmp_path / "cm.bvh", tmp_path / "m.bvh"
+    save_bvh(cm, represented_walk)                       # centimetres unless told otherwise
+    save_bvh(m, represented_walk, units="m")
+    a, b = load_bvh(cm), load_bvh(m)
+    assert (a.scale, b.scale) == (0.01, 1.0)
+    assert np.abs(a.joints - b.joints).max() < 1e-5
+    assert np.allclose(parse_bvh(cm).offsets, 100 * parse_bvh(m).offsets, atol=1e-5)
+    assert np.allclose(parse_bvh(cm).motion[:, :3], 100 * parse_bvh(m).motion[:, :3], atol=1e-4)  # root path
+    Motion(represented_walk, np.zeros((len(represented_walk), 263))).save(m, bvh_units="cm")
+    assert load_bvh(m).scale == 0.01
+
+
+@pytest.mark.parametrize("units", ["mm", "CM", "metres", None, 100])
+def test_units_other_than_cm_or_m_are_refused(tmp_path, walk, units):
+    path = tmp_path / "x.bvh"
+    with pytest.raises(ValueError, match=r"BVH units must be one of 'cm', 'm', got "):
+        save_bvh(path, walk, units=units)
+    with pytest.raises(ValueError, match="BVH units must be one of"):
+        bvh_text(walk, units=units)
+    with pytest.raises(ValueError, match="BVH units must be one of"):
+        Motion(walk, np.zeros((len(walk), 263))).save(path, bvh_units=units)
+    assert not path.exists()
+
+
+COMMANDS_WRITING_BVH = (
+    ["generate", "a person walks", "-o", "a.bvh"],
+    ["edit", "a person walks", "-o", "out"],
+    ["control", "a person walks", "--path", "0,0;0,2", "-o", "a.bvh"],
+    ["edit-real", "in.bvh", "--source", "a person walks", "-o", "a.bvh"],
+)
+
+
+@pytest.mark.parametrize("argv", COMMANDS_WRITING_BVH, ids=lambda argv: argv[0])
+def test_every_command_writing_bvh_takes_bvh_units(argv, capsys):
+    parser = build_parser()
+    assert parser.parse_args(argv).bvh_units == "cm"
+    for units in UNITS_PER_METRE:
+        assert parser.parse_args(argv + ["--bvh-units", units]).bvh_units == units
+    with pytest.raises(SystemExit):
+        parser.parse_args(argv + ["--bvh-units", "mm"])
+    assert "invalid choice: 'mm'" in capsys.readouterr().err
+
+
+def test_bones_of_a_non_rigid_motion_aim_at_its_joints(tmp_path, walk):
+    """Where bone lengths drift, a re-read joint lies on the line from its re-read parent to the
+    motion's joint, at the bone's rest length: it misses by the drift alone, and no error is
+    passed down the chain."""
+    noisy = walk + np.random.default_rng(1).normal(scale=0.005, size=walk.shape)
+    path = tmp_path / "noisy.bvh"
+    save_bvh(path, noisy)
+    back = load_bvh(path).joints.astype(np.float64)
+    rest = np.linalg.norm(parse_bvh(path).offsets, axis=-1) / 100.0
+    names = parse_bvh(path).names
+    for c in range(1, sk.NUM_JOINTS):
+        p = sk.PARENTS[c]
+        if p in (0, 9):          # one rotation serves all their children: least squares, not exact
+            continue
+        to_target = noisy[:, c] - back[:, p]
+        bone = back[:, c] - back[:, p]
+        length = rest[names.index(sk.JOINT_NAMES[c])]
+        assert np.abs(np.linalg.norm(bone, axis=-1) - length).max() < 1e-5
+        sine = np.linalg.norm(np.cross(bone, to_target), axis=-1) / (length * np.linalg.norm(to_target, axis=-1))
+        assert sine.max() < 1e-5 and (np.sum(bone * to_target, axis=-1) > 0).all()     # same direction
+        miss = np.abs(np.linalg.norm(to_target, axis=-1) - length)
+        assert np.abs(np.linalg.norm(back[:, c] - noisy[:, c], axis=-1) - miss).max() < 1e-5
+
+
 def test_exported_file_structure(tmp_path, walk):
     path = tmp_path / "structure.bvh"
     save_bvh(path, walk, fps=20.0)
@@ -410,16 +510,65 @@ def test_exported_file_structure(tmp_path, walk):
     assert off[idx["left_elbow"], 0] > 0 > off[idx["right_elbow"], 0]
     assert off[idx["left_foot"], 2] > 0
     lengths = np.linalg.norm(off[idx["left_knee"]])
-    assert lengths == pytest.approx(0.38, abs=1e-3)               # the motion's own thigh length
+    assert lengths == pytest.approx(38.0, abs=0.1)                # the motion's own thigh length, in cm
 
 
-def test_exported_file_reads_the_same_in_bvhio(tmp_path, walk):
-    pytest.importorskip("bvhio")
-    path = tmp_path / "ref.bvh"
-    save_bvh(path, walk[:12])
+def _joints_in_bvhio(path, units):
+    """(T, 22, 3) metres of one of our exports, as bvhio reads it."""
     names, ref = _bvhio_positions(path)
-    order = [names.index(n) for n in sk.JOINT_NAMES]
-    assert np.abs(ref[:, order] - walk[:12]).max() < 1e-4
+    return ref[:, [names.index(n) for n in sk.JOINT_NAMES]] / UNITS_PER_METRE[units]
+
+
+@pytest.mark.parametrize("units", ["cm", "m"])
+def test_exported_file_reads_the_same_in_bvhio(tmp_path, walk, represented_walk, units):
+    pytest.importorskip("bvhio")
+    for name, joints in (("walk", walk[:12]), ("represented", represented_walk[:12])):
+        path = tmp_path / f"{name}.bvh"
+        save_bvh(path, joints, units=units)
+        err = np.linalg.norm(_joints_in_bvhio(path, units) - joints, axis=-1)
+        assert err.max() < 1e-4, name                         # 1 mm asked; in fact print precision
+
+
+# Runs inside Blender: imports the BVH with Blender's own importer and writes the world position of
+# every bone's head (its joint) at the asked frames, turned back from Blender's Z-up world into the
+# file's Y-up axes, in metres. The importer keys file frame i at scene frame frame_start + i.
+BLENDER_SCRIPT = """
+import json, sys
+import bpy
+from bpy_extras.io_utils import axis_conversion
+bvh, scale, frames, out = sys.argv[sys.argv.index("--") + 1:]
+bpy.ops.import_anim.bvh(filepath=bvh, global_scale=float(scale), axis_forward="-Z", axis_up="Y",
+                        rotate_mode="NATIVE", frame_start=1, use_fps_scale=False)
+arm = next(o for o in bpy.context.scene.objects if o.type == "ARMATURE")
+to_file = axis_conversion(from_forward="-Z", from_up="Y").to_4x4().inverted()
+heads = {}
+for f in map(int, frames.split(",")):
+    bpy.context.scene.frame_set(f + 1)
+    heads[f] = {b.name: list(to_file @ arm.matrix_world @ b.head) for b in arm.pose.bones}
+with open(out, "w") as fh:
+    json.dump(heads, fh)
+"""
+
+
+@pytest.mark.parametrize("units", ["cm", "m"])
+def test_exported_file_reads_the_same_in_blender(tmp_path, represented_walk, units):
+    blender = shutil.which("blender")
+    if blender is None:
+        pytest.skip("Blender is not installed (no `blender` on PATH): its BVH importer is not checked")
+    path, out = tmp_path / f"walk_{units}.bvh", tmp_path / "heads.json"
+    save_bvh(path, represented_walk, units=units)
+    frames = (0, len(represented_walk) // 2, len(represented_walk) - 1)
+    run = subprocess.run([blender, "-b", "--factory-startup", "--python-exit-code", "1", "--python-expr",
+                          BLENDER_SCRIPT, "--", str(path), str(1.0 / UNITS_PER_METRE[units]),
+                          ",".join(map(str, frames)), str(out)],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0 and out.is_file(), run.stdout[-2000:] + run.stderr[-2000:]
+    heads = json.loads(out.read_text())
+    ours = load_bvh(path, fps=None).joints
+    for f in frames:
+        got = np.array([heads[str(f)][name] for name in sk.JOINT_NAMES])
+        assert np.linalg.norm(got - represented_walk[f], axis=-1).max() < 1e-3, f
+        assert np.linalg.norm(got - ours[f], axis=-1).max() < 1e-3, f
 
 
 def test_exported_rotations_change_smoothly(walk):

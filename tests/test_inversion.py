@@ -206,6 +206,8 @@ def test_edit_real_command(tiny_model, tmp_path, capsys):
                              "--inversion", "negative", "--model", str(tiny_model)]) == 0
     assert np.load(out_npy).shape == (40, 22, 3)
     assert out_bvh.read_text().startswith("HIERARCHY") and np.load(rec)["features"].shape == (40, 263)
+    from salad.motion.bvh import load_bvh
+    assert load_bvh(out_bvh).scale == 0.01                           # centimetres unless --bvh-units m
     assert "reconstruction MPJPE" in capsys.readouterr().out
     with pytest.raises(ValueError, match="unsupported output"):
         _cli(add_parser, ["edit-real", str(inp), "--source", PROMPT, "--mode", "mirror", "-o", str(tmp_path / "x.txt"),

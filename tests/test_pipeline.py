@@ -65,11 +65,13 @@ def test_end_of_motion_follows_activation():
 def test_cli_generate_writes_files(tiny_model, tmp_path):
     out = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "a person walks forward", "--model",
                           str(tiny_model), "--seconds", "1.0", "--steps", "3", "-o", str(tmp_path / "w.npy"),
-                          "-o", str(tmp_path / "w.bvh"), "-o", str(tmp_path / "w.png")],
+                          "-o", str(tmp_path / "w.bvh"), "-o", str(tmp_path / "w.png"), "--bvh-units", "m"],
                          cwd=REPO, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert np.load(tmp_path / "w.npy").shape == (20, 22, 3)
     assert (tmp_path / "w.bvh").read_text().startswith("HIERARCHY")
+    from salad.motion.bvh import load_bvh
+    assert load_bvh(tmp_path / "w.bvh").scale == 1.0                 # --bvh-units m
     from PIL import Image
     strip = Image.open(tmp_path / "w.png")
     assert strip.height == 256 and strip.width == 6 * 256 + 5 * 2     # six frames with 2-pixel gaps

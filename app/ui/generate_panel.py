@@ -64,7 +64,8 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
                 cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)",
                                 info="higher follows the text more closely")
                 sampler = gr.Radio(["ddim", "dpm"], value="ddim", label="Sampler",
-                                   info="DPM-Solver++ at 30 steps matches DDIM at 50")
+                                   info="DPM-Solver++: fewer steps for a close result (30 steps: 14 mm from "
+                                        "the 250-step solution, DDIM-50: 11 mm)")
                 foot_lock = foot_lock_checkbox("foot-lock")
             button = gr.Button("Generate", variant="primary", elem_id="generate-button")
         with gr.Column(scale=3, min_width=360):
@@ -74,7 +75,7 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
                 skeleton = gr.Plot(label="3D view: drag to orbit, slide through the frames",
                                    elem_id="skeleton-plot")
             summary = gr.Markdown(elem_id="summary")
-            downloads = gr.File(label="Downloads: MP4 video, BVH (Blender), NPY joints, NPY features, "
+            downloads = gr.File(label="Downloads: MP4 video, BVH (cm), NPY joints, NPY features, "
                                       "NPZ joints + features",
                                 file_count="multiple", interactive=False, elem_id="downloads")
     return GeneratePanel(prompt, auto_length, seconds, seed, steps, cfg, sampler, foot_lock, button, video,

@@ -318,7 +318,7 @@ def edit_real(pipe, motion, source_prompt: str, target_prompt: str | None = None
     corrections so the source branch reproduces the VAE reconstruction exactly.
     .source is the reconstruction (source.info["mpjpe_m"]: its error against the input),
     .edited the edit; params hold the settings and timings. foot_lock=False leaves out the foot
-    clean-up of both motions (salad.motion.footlock).
+    clean-up of both motions (salad.motion.cleanup).
     """
     from .inversion import METHODS
 
@@ -387,6 +387,8 @@ def parse_reweight(items) -> dict[str, float] | None:
 
 
 def add_parser(sub) -> None:
+    from ..cli import add_bvh_units
+
     p = sub.add_parser("edit-real", help="edit a real motion (BVH/NPY) by text: inversion + attention editing")
     p.add_argument("input", help="a .bvh file, or .npy joints (T, 22, 3) / features (T, 263)")
     p.add_argument("--source", required=True, help="a prompt describing the input motion")
@@ -413,6 +415,7 @@ def add_parser(sub) -> None:
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--bf16", action="store_true", help="run the denoiser in bf16 (faster, less exact inversion)")
     p.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
+    add_bvh_units(p)
     p.set_defaults(func=cmd_edit_real)
 
 
@@ -445,10 +448,10 @@ def cmd_edit_real(a) -> int:
     print(f"{real.source}: {real.frames} frames; reconstruction MPJPE {100 * err:.2f} cm; inversion "
           f"{res.params['inversion_seconds']:.1f} s, edit {res.params['edit_seconds']:.1f} s ({', '.join(notes)})")
     for path in a.output:
-        res.edited.save(path)
+        res.edited.save(path, bvh_units=a.bvh_units)
         print(f"wrote {path}")
     for path in a.reconstruction:
-        res.source.save(path)
+        res.source.save(path, bvh_units=a.bvh_units)
         print(f"wrote {path}")
     if a.side_by_side:
         from ..render import render_side_by_side

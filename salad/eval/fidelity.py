@@ -10,7 +10,7 @@ then to all styles where fewer than MIN_REFERENCE clips are found; durations are
 model's longest motion. Each class passes or fails on the
 checks that matter for it, with the tolerances in RULES, stated before anything is measured.
 The table is made twice from the same samples: the raw decoder output, and the output after the
-foot lock (salad.motion.footlock) that generate() applies by default.
+clean-up (salad.motion.cleanup: rigid bones, then the foot lock) that generate() applies by default.
 
     salad eval-fidelity --data data/bandai-hml --out DIR [--seeds 3] [--steps 50]
 """
@@ -26,7 +26,7 @@ import numpy as np
 
 from ..files import atomic_write_text
 from ..motion import skeleton as sk
-from ..motion.footlock import lock_feet_features
+from ..motion.cleanup import clean_motion
 from ..motion.representation import FPS, features_to_joints
 from . import physics
 from ..data.labels import read_labels
@@ -224,7 +224,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int = 
             for seed in range(seeds):
                 m = pipe.generate(prompt, seconds=None, seed=seed, steps=steps, cfg=cfg, sampler=sampler,
                                   foot_lock=False)
-                locked, _ = lock_feet_features(m.joints, m.features)
+                locked, _ = clean_motion(m.joints, m.features)
                 raw.append(measure(m.joints))
                 clean.append(measure(locked))
                 # every measure is kept, so that the table can be judged again under other rules

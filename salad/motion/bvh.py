@@ -1,8 +1,11 @@
 """BVH import and export for the 22-joint skeleton.
 
 Import reads any BVH, runs forward kinematics, maps named joints onto the 22
-HumanML3D joints, converts to metres and resamples to 20 fps. Export solves
-per-joint rotations for a 22-joint skeleton with the project's joint names.
+HumanML3D joints, converts to metres and resamples to 20 fps. BVH does not record
+its units: the reader infers m, cm or mm from the skeleton's size (detect_scale),
+so exports in either unit read back alike; scale= overrides the guess. Export
+solves per-joint rotations for a 22-joint skeleton with the project's joint names,
+in centimetres unless units="m" (salad.motion.bvh_export).
 
 Parser choice: our own NumPy parser. On Bandai clips bvhio gives the same positions
 (within 3e-6 m) but needs ~100 ms per clip (up to 270 ms) in per-frame Python loops,
@@ -17,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bvh_export import bvh_text, save_bvh
+from .bvh_export import UNITS_PER_METRE, bvh_text, save_bvh
 from .bvh_mapping import (
     BANDAI_MAPPING, MAPPINGS, MIXAMO_MAPPING, SALAD_MAPPING, SMPL_MAPPING, JointMapping,
     mapped_positions, resolve_mapping,
@@ -26,7 +29,7 @@ from .bvh_parse import BvhData, BvhError, parse_bvh, parse_bvh_text
 from .representation import bone_lengths, canonicalize
 
 __all__ = [
-    "BANDAI_MAPPING", "MAPPINGS", "MIXAMO_MAPPING", "SALAD_MAPPING", "SMPL_MAPPING",
+    "BANDAI_MAPPING", "MAPPINGS", "MIXAMO_MAPPING", "SALAD_MAPPING", "SMPL_MAPPING", "UNITS_PER_METRE",
     "BvhClip", "BvhData", "BvhError", "bvh_text", "detect_scale", "load_bvh", "parse_bvh",
     "parse_bvh_text", "resample", "save_bvh",
 ]
@@ -90,7 +93,8 @@ def load_bvh(path: str | os.PathLike, mapping: str | JointMapping = "auto", fps:
 
     mapping: "auto", a name in MAPPINGS, or a dict {target joint: source name or (a, b, t)}.
     fps: output frame rate (None keeps the file's). scale: metres per file unit
-    (None detects m/cm/mm). canonical: floor at y=0, start at the origin facing +Z.
+    (None infers m/cm/mm from the skeleton's size, see detect_scale; 0.01 reads a file
+    as centimetres). canonical: floor at y=0, start at the origin facing +Z.
     """
     data = parse_bvh(os.fspath(path) if isinstance(path, os.PathLike) else _as_path(path))
     name, table = resolve_mapping(data, mapping)

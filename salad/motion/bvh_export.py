@@ -1,13 +1,26 @@
 """Writing 22-joint motions as BVH: rest skeleton from the motion, rotations by inverse kinematics.
 
-Units are metres (Blender's BVH importer maps one BVH unit to one metre at its
-default scale). The rest pose stands upright facing +Z with the character's left
-at +X and the arms out sideways (T-pose): with the arms at rest pointing down, an
-arm raised overhead would sit at the 180-degree singularity of the shortest-arc
-rotation and its twist could flip between frames.
+Units are centimetres by default, what Maya, MotionBuilder and most mocap files use;
+units="m" writes metres, which Blender's BVH importer takes at its default scale (it
+maps one BVH unit to one metre; import a centimetre file with Scale 0.01). BVH has no
+field for units: readers infer them (salad.motion.bvh.load_bvh from the skeleton's size).
+
+The rest skeleton has each bone's median length over the motion, and each joint aims
+its bone from where the rest skeleton has put the joint at the motion's child joint.
+A re-read child then lies on the line to its true position, off by the difference
+between that distance and its bone's rest length (children of the pelvis and spine3
+also by how far their arrangement strays from its median). Motions on a rigid
+skeleton (datasets, and the 263-d representation of one) come back exactly, up to
+the printed decimals; generated motions, whose bone lengths drift frame to frame,
+come back off by that drift, which fixed BVH offsets cannot follow.
+
+The rest pose stands upright facing +Z with the character's left at +X and the arms
+out sideways (T-pose): with the arms at rest pointing down, an arm raised overhead
+would sit at the 180-degree singularity of the shortest-arc rotation and its twist
+could flip between frames.
 
 Pelvis and spine3 get one rotation fitted (Kabsch) to all their child bones;
-every other joint turns its rest bone onto the actual bone by the shortest arc
+every other joint turns its rest bone onto the aimed bone by the shortest arc
 in its parent's frame (minimal twist), which stays continuous in time. Giving
 the thigh and upper arm the twist of the knee/elbow bend plane instead was
 tried: it jumps whenever a limb goes from straight to bent.
@@ -40,6 +53,10 @@ del _j
 CHILDREN = tuple(tuple(int(c) for c in np.flatnonzero(sk.PARENTS == j)) for j in range(sk.NUM_JOINTS))
 # Joints with several children get a frame fitted to all of them: (left, right, up) child.
 FRAME_CHILDREN = {0: (1, 2, 3), 9: (13, 14, 12)}
+
+# File units per metre for each unit save_bvh writes.
+UNITS_PER_METRE = {"cm": 100.0, "m": 1.0}
+DEFAULT_UNITS = "cm"
 
 # Euler order per joint, outermost first. The middle angle is the one that can
 # reach gimbal lock, so it goes to the axis that turns least: the bone's own axis
@@ -109,22 +126,45 @@ def end_site_offsets(offsets: torch.Tensor) -> dict[int, torch.Tensor]:
 
 
 def local_rotations(joints: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-    """(T, 22, 3, 3) local rotations that pose the rest skeleton onto the joint positions."""
+    """(T, 22, 3, 3) local rotations that pose the rest skeleton onto the joint positions
+    (see rigid_pose)."""
+    return rigid_pose(joints, offsets)[0]
+
+
+def rigid_joints(joints) -> np.ndarray:
+    """The motion on a rigid skeleton with its own median bone lengths: exactly the joints its
+    BVH holds. Bones keep their direction, as local_rotations aims them; a generated motion
+    whose bones stretch from frame to frame loses the stretch, a recorded one stays as it is."""
+    j = torch.as_tensor(np.asarray(joints, dtype=np.float64))
+    return rigid_pose(j, rest_offsets(j))[1].numpy().astype(np.asarray(joints).dtype, copy=False)
+
+
+def rigid_pose(joints: torch.Tensor, offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(T, 22, 3, 3) local rotations that pose the rest skeleton onto the joint positions, and
+    the (T, 22, 3) joint positions of that posed rest skeleton.
+
+    Each bone is aimed from where the rest skeleton has put its joint so far towards the
+    motion's child joint: a bone whose length differs from its rest length in some frame
+    then misplaces only its own child, instead of shifting everything below it as aiming
+    along the motion's bone direction would.
+    """
     T = joints.shape[0]
     eye = torch.eye(3, dtype=joints.dtype).expand(T, 3, 3)
     world: list[torch.Tensor | None] = [None] * sk.NUM_JOINTS
     local: list[torch.Tensor | None] = [None] * sk.NUM_JOINTS
+    placed: list[torch.Tensor | None] = [None] * sk.NUM_JOINTS
+    placed[0] = joints[:, 0]
     for j in range(sk.NUM_JOINTS):  # parents precede children in JOINT_NAMES order
         p = int(sk.PARENTS[j])
         parent_world = eye if p < 0 else world[p]
         kids = CHILDREN[j]
         if j in FRAME_CHILDREN:
-            actual = joints[:, list(kids)] - joints[:, j:j + 1]
+            actual = joints[:, list(kids)] - placed[j].unsqueeze(1)
             world[j] = _kabsch(offsets[list(kids)], actual)
             local[j] = parent_world.transpose(-1, -2) @ world[j]
         elif kids:
             (c,) = kids
-            bone = joints[:, c] - joints[:, j]
+            bone = joints[:, c] - placed[j]
             # Shortest arc in the parent's frame: the bone carries no twist of its own.
             in_parent = (parent_world.transpose(-1, -2) @ bone.unsqueeze(-1)).squeeze(-1)
             rot = quat_to_matrix(qbetween(offsets[c].expand_as(in_parent), in_parent))
@@ -134,7 +174,9 @@ def local_rotations(joints: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor
         else:
             local[j] = eye
             world[j] = parent_world
-    return torch.stack(local, dim=1)
+        for c in kids:
+            placed[c] = placed[j] + (world[j] @ offsets[c].expand(T, 3).unsqueeze(-1)).squeeze(-1)
+    return torch.stack(local, dim=1), torch.stack(placed, dim=1)
 
 
 def _dfs_order() -> list[int]:
@@ -166,18 +208,27 @@ def _fmt(v) -> str:
     return " ".join(f"{float(x):.6f}" for x in v)
 
 
-def bvh_text(joints, fps: float = 20.0) -> str:
-    """BVH text (metres) for joints (T, 22, 3) in metres at `fps`."""
+def units_per_metre(units: str) -> float:
+    """File units per metre for a `units` name; ValueError naming the choices otherwise."""
+    if not isinstance(units, str) or units not in UNITS_PER_METRE:
+        raise ValueError(f"BVH units must be one of {', '.join(map(repr, UNITS_PER_METRE))}, got {units!r}")
+    return UNITS_PER_METRE[units]
+
+
+def bvh_text(joints, fps: float = 20.0, units: str = DEFAULT_UNITS) -> str:
+    """BVH text in `units` ("cm" or "m") for joints (T, 22, 3) in metres at `fps`."""
+    scale = units_per_metre(units)
     j = _validated(joints, fps)
     t = torch.from_numpy(j)
     offsets = rest_offsets(t)
     rots = local_rotations(t, offsets)
+    offsets = offsets * scale
     ends = end_site_offsets(offsets)
 
     lines = ["HIERARCHY"]
     _write_joint(lines, 0, 0, offsets, ends)
     order = _dfs_order()
-    columns = [t[:, 0]]
+    columns = [t[:, 0] * scale]
     for jt in order:
         euler = matrix_to_euler(rots[:, jt], EULER_ORDERS[jt])
         columns.append(torch.rad2deg(euler))
@@ -204,11 +255,11 @@ def _validated(joints, fps: float) -> np.ndarray:
     return j.astype(np.float64)
 
 
-def save_bvh(path: str | os.PathLike, joints, fps: float = 20.0) -> None:
-    """Write joints (T, 22, 3) in metres at `fps` as a BVH file in metres, atomically."""
+def save_bvh(path: str | os.PathLike, joints, fps: float = 20.0, units: str = DEFAULT_UNITS) -> None:
+    """Write joints (T, 22, 3) in metres at `fps` as a BVH file in `units` ("cm" or "m"), atomically."""
     path = Path(path)
     try:
-        text = bvh_text(joints, fps)
+        text = bvh_text(joints, fps, units)
     except BvhError as e:
         raise BvhError(f"{path}: {e}") from None
     if not path.parent.is_dir():

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from .bvh_export import DEFAULT_UNITS as DEFAULT_BVH_UNITS
 from .representation import FPS
 from ..files import atomic_write
 
@@ -47,9 +48,9 @@ class Motion:
     def seconds(self) -> float:
         return self.frames / self.fps
 
-    def save(self, path: str | Path) -> Path:
-        """Write by extension: .npy (joints), .npz (joints + features), .bvh, .mp4, .gif, or .png
-        (six evenly spaced frames side by side, for documents)."""
+    def save(self, path: str | Path, bvh_units: str = DEFAULT_BVH_UNITS) -> Path:
+        """Write by extension: .npy (joints), .npz (joints + features), .bvh (in bvh_units:
+        "cm" or "m"), .mp4, .gif, or .png (six evenly spaced frames side by side, for documents)."""
         path = Path(path)
         ext = path.suffix.lower()
         if ext == ".npy":
@@ -59,7 +60,7 @@ class Motion:
                                                 features=self.features.astype(np.float32), fps=self.fps))
         elif ext == ".bvh":
             from .bvh import save_bvh
-            save_bvh(path, self.joints, fps=self.fps)
+            save_bvh(path, self.joints, fps=self.fps, units=bvh_units)
         elif ext == ".mp4":
             from ..render import render_video
             render_video(self.joints, path, fps=self.fps, title=self.text or None)
