@@ -372,6 +372,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--data", help="override data.root")
     t.add_argument("--max-steps", type=int, help="override optim.max_steps")
     t.add_argument("--threads", type=int, help="override run.threads (CPU threads for this process)")
+    t.add_argument("--device", help="override run.device: auto (default: a CUDA GPU when torch sees one, else the "
+                                    "CPU), cpu, cuda or cuda:N; under torchrun each process takes its LOCAL_RANK's GPU")
     t.add_argument("--vae", help="denoiser: override vae (the VAE whose latents it learns), e.g. assets/model/vae")
     start = t.add_mutually_exclusive_group()
     start.add_argument("--init-from", metavar="MODEL_DIR",

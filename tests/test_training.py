@@ -254,6 +254,37 @@ def test_vae_override_only_applies_where_there_is_a_vae(tiny_dataset, tmp_path, 
     assert "--vae does not apply to a VAETrainConfig" in capsys.readouterr().err
 
 
+def test_devices_are_resolved_or_refused_clearly(monkeypatch):
+    from salad.precision import resolve_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == torch.device("cpu") == resolve_device(None) == resolve_device(" CPU ")
+    for name, why in (("cuda", "sees no CUDA GPU"), ("cuda:1", "sees no CUDA GPU"), ("tpu", "unknown device"),
+                      ("mps", "not supported")):
+        with pytest.raises(ValueError, match=why):
+            resolve_device(name)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert resolve_device("auto") == torch.device("cuda")
+    with pytest.raises(ValueError, match="has 1 CUDA GPU"):
+        resolve_device("cuda:1")
+
+
+def test_training_asked_for_a_gpu_on_a_machine_without_one_stops_before_any_step(tiny_dataset, tmp_path,
+                                                                                capsys, monkeypatch):
+    from salad.cli import main
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    cfg = tmp_path / "v.toml"
+    cfg.write_text(f'[data]\nroot = "{tiny_dataset}"\nwindow = 16\n[optim]\nbatch_size = 4\nmax_steps = 2\n')
+    assert main(["train", "vae", "--config", str(cfg), "--out-dir", str(tmp_path / "gpu"), "--device", "cuda"]) == 2
+    assert "sees no CUDA GPU" in capsys.readouterr().err
+    assert not (tmp_path / "gpu").exists()
+    trainer = Trainer(VAETask(vae_config(tiny_dataset, tmp_path / "cpu", steps=1)), OptimConfig(max_steps=1),
+                      RunConfig(out_dir=str(tmp_path / "cpu"), device="cpu"))
+    assert trainer.device == torch.device("cpu") and next(trainer.model.parameters()).device.type == "cpu"
+
+
 def test_denoiser_batches_are_the_same_whether_posteriors_are_cached_or_not(tiny_model, tiny_dataset, tmp_path):
     from salad.diffusion.schedule import DiffusionConfig
     from salad.models.denoiser import DenoiserConfig
@@ -286,13 +317,13 @@ def test_denoiser_batches_are_the_same_whether_posteriors_are_cached_or_not(tiny
 def test_bf16_runs_train_in_fp32_on_a_cpu_without_native_bf16(tiny_dataset, tmp_path, monkeypatch, capsys):
     import salad.training.loop as loop
 
-    monkeypatch.setattr(loop, "bf16_supported", lambda: False)
+    monkeypatch.setattr(loop, "bf16_supported", lambda device: False)
     cfg = vae_config(tiny_dataset, tmp_path / "run", steps=1, bf16=True)
     trainer = Trainer(VAETask(cfg), cfg.optim, cfg.run)
     assert not trainer.bf16 and "no native bf16" in capsys.readouterr().err
     with trainer.autocast():
         assert not torch.is_autocast_enabled("cpu")
-    monkeypatch.setattr(loop, "bf16_supported", lambda: True)
+    monkeypatch.setattr(loop, "bf16_supported", lambda device: True)
     trainer = Trainer(VAETask(cfg), cfg.optim, cfg.run)
     with trainer.autocast():
         assert torch.is_autocast_enabled("cpu")

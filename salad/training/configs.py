@@ -42,6 +42,7 @@ class RunConfig:
     checkpoint_every: int = 500
     log_every: int = 50
     threads: int = 0              # 0 = torch's default
+    device: str = "auto"          # auto (a CUDA GPU when present, else the CPU), cpu, cuda or cuda:N
 
 
 @dataclass

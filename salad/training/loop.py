@@ -1,6 +1,7 @@
 """The training loop shared by every model: AdamW with warm-up and step decay, optional
-bf16 autocast, EMA, tqdm progress, periodic atomic checkpoints with exact resume, and
-multi-process data parallelism through torch.distributed (launched by torchrun)."""
+bf16 autocast, EMA, tqdm progress, periodic atomic checkpoints with exact resume, on the CPU
+or a CUDA GPU, and multi-process data parallelism through torch.distributed (launched by
+torchrun: gloo between CPU processes, NCCL between GPUs, one GPU per process)."""
 from __future__ import annotations
 
 import copy
@@ -21,7 +22,7 @@ from tqdm import tqdm
 
 from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, recover_checkpoint, save_checkpoint
 from ..files import atomic_write_text
-from ..precision import bf16_supported
+from ..precision import bf16_supported, resolve_device, to_device
 from .configs import OptimConfig, RunConfig
 
 STATE_DIR = "state"
@@ -47,11 +48,21 @@ def lr_factor(step: int, cfg: OptimConfig, warm_from: int = 0) -> float:
     return warm * cfg.gamma ** sum(step >= m for m in cfg.milestones)
 
 
-def distributed_context() -> tuple[int, int]:
+def training_device(name: str) -> torch.device:
+    """The run's device; under torchrun each process takes the GPU of its LOCAL_RANK."""
+    device = resolve_device(name)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    return device
+
+
+def distributed_context(device: torch.device | None = None) -> tuple[int, int]:
     """(rank, world size); joins the process group when launched by torchrun."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1 and not dist.is_initialized():
-        dist.init_process_group("gloo")
+        dist.init_process_group("nccl" if device is not None and device.type == "cuda" else "gloo")
     if dist.is_initialized():
         return dist.get_rank(), dist.get_world_size()
     return 0, 1
@@ -91,11 +102,12 @@ def _with_defaults(saved: dict, defaults: dict) -> dict:
 class Trainer:
     def __init__(self, task: Task, optim: OptimConfig, run: RunConfig, ema_decay: float | None = None):
         self.task, self.optim_cfg, self.run_cfg = task, optim, run
-        self.rank, self.world = distributed_context()
+        self.device = training_device(run.device)
+        self.rank, self.world = distributed_context(self.device)
         if run.threads:
             torch.set_num_threads(run.threads)
         self.out = Path(run.out_dir)
-        self.model = task.model
+        self.model = task.model.to(self.device)
         self.ema = copy.deepcopy(self.model).eval().requires_grad_(False) if ema_decay else None
         self.ema_decay = ema_decay
         params = [p for p in self.model.parameters() if p.requires_grad]
@@ -108,21 +120,23 @@ class Trainer:
         random.seed(run.seed + 1000 * self.rank)
         self.wrapped = self.model
         if self.world > 1:
-            self.wrapped = torch.nn.parallel.DistributedDataParallel(self.model)
+            on_gpu = [self.device.index] if self.device.type == "cuda" else None
+            self.wrapped = torch.nn.parallel.DistributedDataParallel(self.model, device_ids=on_gpu)
         self.samples_seen = 0
-        self.bf16 = run.bf16 and bf16_supported()
+        self.bf16 = run.bf16 and bf16_supported(self.device)
         if run.bf16 and not self.bf16 and self.rank == 0:
-            tqdm.write("run.bf16 is set but this CPU has no native bf16 (emulated it is many times slower "
-                       "than fp32): training in fp32", file=sys.stderr)
+            tqdm.write(f"run.bf16 is set but this {self.device.type.upper()} has no native bf16 (emulated it is "
+                       "many times slower than fp32): training in fp32", file=sys.stderr)
 
     # ------------------------------------------------------------ one step
     def autocast(self):
         if self.bf16:
-            return torch.autocast("cpu", dtype=torch.bfloat16)
+            return torch.autocast(self.device.type, dtype=torch.bfloat16)
         return nullcontext()
 
     def step(self, batch: dict) -> dict[str, float]:
         self.model.train()
+        batch = to_device(batch, self.device)
         for g in self.optimizer.param_groups:
             g["lr"] = self.optim_cfg.lr * lr_factor(self.step_count, self.optim_cfg, self.warm_from)
         with self.autocast():
@@ -150,6 +164,8 @@ class Trainer:
         opt_tensors, opt_doc = _flatten_optimizer(self.optimizer.state_dict())
         parts = {"model": self.model.state_dict(), "optimizer": opt_tensors,
                  "rng": {"torch": torch.get_rng_state()}}
+        if self.device.type == "cuda":
+            parts["rng"]["cuda"] = torch.cuda.get_rng_state(self.device)
         if self.ema is not None:
             parts["ema"] = self.ema.state_dict()
         meta = {"step": self.step_count, "optimizer": opt_doc, "numpy_rng": self.rng.bit_generator.state,
@@ -191,6 +207,8 @@ class Trainer:
         self.warm_from = int(meta.get("warm_from", 0))
         if self.rank == 0:
             torch.set_rng_state(parts["rng"]["torch"])
+            if self.device.type == "cuda" and "cuda" in parts["rng"]:
+                torch.cuda.set_rng_state(parts["rng"]["cuda"], self.device)
             self.rng.bit_generator.state = meta["numpy_rng"]
             state = meta["python_rng"]
             random.setstate((state[0], tuple(state[1]), state[2]))
