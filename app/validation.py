@@ -7,19 +7,17 @@ import math
 from dataclasses import dataclass
 from numbers import Real
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from salad.motion.representation import FPS
 from salad.editing.build import EDIT_MODES
 from salad.pipeline import MIN_AUTO_FRAMES
 
+from . import controls
+from .real_input import RealInput, read_upload, upload_path
 from .settings import (
     DEFAULT_SELF_INJECT, DEFAULT_TAU, MAX_CFG, MAX_PATH_SPEED, MAX_REWEIGHT, MAX_SEED, MAX_STEPS, MAX_STRENGTH,
     MIRROR_PARTS,
 )
-
-if TYPE_CHECKING:
-    from .real_edit import RealInput
 
 
 @dataclass(frozen=True)
@@ -243,8 +241,6 @@ def control_signal(pipe, task, preset, seconds, speed, upload, example, keyframe
     """Build the Control panel's signal -> (ControlSignal, detail, base id). `base` is the
     session's last generated Result (in-betweening and upper-body edits start from it);
     uploads must lie under `upload_root`; examples are file names in `examples_dir`."""
-    from . import controls
-
     task = _choice("task", task, tuple(controls.TASKS))
     span = (MIN_AUTO_FRAMES, pipe.canvas_frames)
     if task == "path":
@@ -311,20 +307,18 @@ class RealEditRequest:
 
 def parse_real_edit(pipe, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion,
                     steps, cfg, foot_lock=True, *, upload_root: Path, clips=None) -> tuple[RealEditRequest, RealInput]:
-    """Validate the Real motion panel -> (RealEditRequest, app.real_edit.RealInput). The motion is
-    an upload (under `upload_root`) or a test clip of `clips` (an app.real_edit.ClipLibrary),
+    """Validate the Real motion panel -> (RealEditRequest, app.real_input.RealInput). The motion is
+    an upload (under `upload_root`) or a test clip of `clips` (an app.real_input.ClipLibrary),
     never both; the edit is checked as the Edit panel's, with the edit's default τ and
     self-attention injection, and sampled with DDIM as the inversion requires."""
     from salad.editing.inversion import METHODS
 
-    from . import real_edit
-
-    up = real_edit.upload_path(upload, upload_root)
+    up = upload_path(upload, upload_root)
     picked = clip not in (None, "", "none")
     if up is not None and picked:
         raise ValueError("give either an uploaded motion or a test clip, not both")
     if up is not None:
-        motion, digest = real_edit.read_upload(up.path, up.name), up.digest
+        motion, digest = read_upload(up.path, up.name), up.digest
     elif picked:
         if clips is None:
             raise ValueError("no test clips are offered: start the studio with --clips DIR (a dataset build)")

@@ -20,7 +20,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from . import skeleton as sk
+import salad.motion.skeleton as sk
 from .quaternion import qbetween, qinv, qmul, qrot, quat_to_cont6d
 
 FEATURE_DIM = 263

@@ -22,9 +22,10 @@ import numpy as np
 
 from salad.motion import skeleton as sk
 
-from . import camera as cam
-from . import geometry as geo
-from . import overlay, style
+import salad.render.camera as cam
+import salad.render.geometry as geo
+import salad.render.overlay as overlay
+import salad.render.style as style
 from .backend import gl_backend
 from .engine import engine
 from ..files import atomic_path
