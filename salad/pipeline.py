@@ -9,16 +9,17 @@ import math
 import os
 from contextlib import nullcontext
 from pathlib import Path
-from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 import torch
 
 from .checkpoint import CheckpointError
+from .files import REPO_ROOT
 from .diffusion.sampling import sample
 from .diffusion.schedule import SAMPLERS, DiffusionConfig, NoiseSchedule
 from .editing.build import build_edit, edit_arguments
+from .editing.spec import EditResult
 from .config import from_dict
 from .models.denoiser import Denoiser
 from .models.io import load_denoiser, load_vae, vae_latent_checksums
@@ -28,13 +29,11 @@ from .models.vocabulary import PromptCheck
 from .precision import bf16_supported
 from .motion.cleanup import clean_motion
 from .motion.motion import Motion
-from .motion.representation import FPS, Normalizer, features_to_joints
+from .motion.representation import FPS, MIN_AUTO_FRAMES, Normalizer, features_to_joints
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 EMBEDDED_MODEL = REPO_ROOT / "assets" / "model"
 MAX_PROMPT_CHARS = 300
 ACTIVATION_THRESHOLD = 0.5
-MIN_AUTO_FRAMES = 16
 
 Progress = Callable[[int, int], None]
 
@@ -343,16 +342,6 @@ class Pipeline:
         from .editing.real import edit_real
         return edit_real(self, motion, source_prompt, target_prompt, mode, **params)
 
-
-
-
-@dataclass
-class EditResult:
-    source: Motion
-    edited: Motion
-    source_attention: object = None
-    edited_attention: object = None
-    params: dict = field(default_factory=dict)
 
 
 def end_of_motion(activation: np.ndarray, threshold: float = ACTIVATION_THRESHOLD) -> int:

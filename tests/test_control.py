@@ -333,14 +333,14 @@ def test_edit_controller_counts_denoising_steps_under_time_travel(pipe, monkeypa
 # ---------------------------------------------------------------- the `salad control` command
 
 def _parser():
-    from salad.control_cli import add_parser
+    from salad.cli.control import add_parser
     p = argparse.ArgumentParser(prog="salad")
     add_parser(p.add_subparsers(dest="command", required=True))
     return p
 
 
 def test_cli_argument_errors(tmp_path, capsys):
-    from salad.control_cli import signal_from_args
+    from salad.cli.control import signal_from_args
     from salad.motion.motion import check_output_paths
     p = _parser()
     with pytest.raises(SystemExit):

@@ -197,7 +197,7 @@ def _cli(add_parser, argv):
 
 
 def test_edit_real_command(tiny_model, tmp_path, capsys):
-    from salad.editing.real import add_parser
+    from salad.cli.edit import add_edit_real as add_parser
     inp = tmp_path / "in.npy"
     np.save(inp, synthetic_walk(41, seed=2))
     out_bvh, out_npy, rec = tmp_path / "out.bvh", tmp_path / "out.npy", tmp_path / "rec.npz"
@@ -238,7 +238,7 @@ def test_eval_real_edit_end_to_end(tiny_model, tmp_path):
     from salad.eval.classifiers import ClassifierConfig, MotionClassifier, save_classifier
     from salad.data.labels import SIDES
     from salad.eval.networks import MotionEncoderConfig
-    from salad.eval.real_edit_bench import add_parser
+    from salad.cli.eval import add_eval_real_edit as add_parser
 
     data = _labelled_dataset(tmp_path / "data")
     torch.manual_seed(0)

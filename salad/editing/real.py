@@ -24,15 +24,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .spec import EditResult
+
 if TYPE_CHECKING:
     import torch
 
     from ..motion.motion import Motion
-    from ..pipeline import EditResult
     from .inversion import Inversion
 
-# torch, the pipeline and the inversion are imported where they are used: the command
-# line registers `salad edit-real` from this module and must start without them.
+# torch and the inversion are imported where they are used: the command line reads
+# DEFAULT_INVERSION from this module to build its parser.
 
 # Chosen by measurement on 10 real test clips with the embedded model (`salad eval-real-edit`): negative-prompt
 # inversion replays at the VAE's own floor (1.74 vs 1.73 cm MPJPE) for one model call per step and gives the
@@ -65,7 +66,7 @@ def training_bone_lengths(pipe) -> np.ndarray | None:
     """Bone lengths (22,) of the skeleton the model was trained on: skeleton.json next to
     the model, or in the VAE's training data directory; None when neither is found."""
     from ..checkpoint import CheckpointError, read_checkpoint_config
-    from ..pipeline import REPO_ROOT
+    from ..files import REPO_ROOT
 
     root = Path(pipe.source) if pipe.source else None
     candidates = [] if root is None else [root / "skeleton.json", root / "vae" / "skeleton.json"]
@@ -150,7 +151,6 @@ def load_real_motion(motion, max_frames: int, bone_lengths: np.ndarray | None = 
     longer than max_frames are an error unless trim=True keeps their start.
     """
     from ..motion import representation as rep
-    from ..pipeline import MIN_AUTO_FRAMES
 
     arr, where, from_bvh = _as_array(motion)
     if arr.dtype.kind not in "fiu":
@@ -160,9 +160,9 @@ def load_real_motion(motion, max_frames: int, bone_lengths: np.ndarray | None = 
     if arr.ndim == 3 and arr.shape[1:] == (NUM_JOINTS, 3):
         if not np.isfinite(arr).all():
             raise ValueError(f"{where}: joint positions contain NaN or infinite values")
-        if len(arr) < MIN_AUTO_FRAMES + 1:
-            raise ValueError(f"{where}: {len(arr)} frames is too short; need at least {MIN_AUTO_FRAMES + 1} "
-                             f"({(MIN_AUTO_FRAMES + 1) / rep.FPS:.2f} s at {rep.FPS} fps)")
+        if len(arr) < rep.MIN_AUTO_FRAMES + 1:
+            raise ValueError(f"{where}: {len(arr)} frames is too short; need at least {rep.MIN_AUTO_FRAMES + 1} "
+                             f"({(rep.MIN_AUTO_FRAMES + 1) / rep.FPS:.2f} s at {rep.FPS} fps)")
         if bone_lengths is not None:
             differs = float(np.abs(rep.bone_lengths(arr) - bone_lengths).max())
             do = retarget if retarget is not None else (from_bvh or differs > BONE_TOLERANCE_M)
@@ -189,8 +189,8 @@ def load_real_motion(motion, max_frames: int, bone_lengths: np.ndarray | None = 
                              f"{max_frames} frames ({max_frames / rep.FPS:.1f} s); trim the motion (or pass trim=True)")
         info["trimmed_from_frames"] = n
         n = max_frames
-    if n < MIN_AUTO_FRAMES:
-        raise ValueError(f"{where}: {n} feature frames is too short; need at least {MIN_AUTO_FRAMES}")
+    if n < rep.MIN_AUTO_FRAMES:
+        raise ValueError(f"{where}: {n} feature frames is too short; need at least {rep.MIN_AUTO_FRAMES}")
     keep = (n // 4) * 4
     info["dropped_frames"] = len(feats) - keep
     feats = feats[:keep].astype(np.float32)
@@ -281,7 +281,6 @@ def edit_inverted(pipe, inv: Inversion, target_prompt: str | None = None, mode: 
     """Algorithm 1 from an inverted trajectory: the source branch replays the inversion
     (exactly, with correct=True), the edited branch starts from the same z_T and gets the
     same per-step corrections."""
-    from ..pipeline import EditResult
     from .build import build_edit
     from .inversion import replay
 
@@ -368,94 +367,3 @@ def sdedit(pipe, motion, prompt: str, strength: float = 0.5, seed: int = 0, step
     m.seed = seed
     m.info.update(sdedit_strength=strength, sdedit_timestep=grid.timesteps[first])
     return m
-
-
-# ---------------------------------------------------------------- command line
-
-def parse_reweight(items) -> dict[str, float] | None:
-    """["word=scale", ...] -> {word: scale}."""
-    out = {}
-    for item in items or []:
-        word, _, scale = item.rpartition("=")
-        try:
-            out[word] = float(scale)
-        except ValueError:
-            raise ValueError(f"--reweight takes WORD=SCALE, got {item!r}") from None
-        if not word:
-            raise ValueError(f"--reweight takes WORD=SCALE, got {item!r}")
-    return out or None
-
-
-def add_parser(sub) -> None:
-    from ..cli import add_bvh_units
-
-    p = sub.add_parser("edit-real", help="edit a real motion (BVH/NPY) by text: inversion + attention editing")
-    p.add_argument("input", help="a .bvh file, or .npy joints (T, 22, 3) / features (T, 263)")
-    p.add_argument("--source", required=True, help="a prompt describing the input motion")
-    p.add_argument("--target", default=None, help="target prompt (swap, refine)")
-    p.add_argument("--mode", default="swap", help="swap, refine, reweight or mirror")
-    p.add_argument("-o", "--output", action="append", required=True,
-                   help="edited motion: .bvh, .npy, .npz, .mp4, .gif or .png; repeat for several formats")
-    p.add_argument("--reconstruction", action="append", default=[],
-                   help="also write the unedited reconstruction (the source branch) here; repeatable")
-    p.add_argument("--side-by-side", default=None, help="an MP4 of input, reconstruction and edit")
-    p.add_argument("--inversion", default=DEFAULT_INVERSION,
-                   help="inversion method: negative (default), fixed_point, null_text or ddim")
-    p.add_argument("--no-correct", action="store_true",
-                   help="sample without the per-step corrections (the source branch then only approximates the input)")
-    p.add_argument("--tau", type=float, default=None, help="share of T led by the source maps (swap: 0.8)")
-    p.add_argument("--reweight", action="append", metavar="WORD=SCALE", help="scale a word's attention (-3..3)")
-    p.add_argument("--mirror", choices=("lower", "upper", "all"), default=None)
-    p.add_argument("--self-inject", type=float, default=0.2, help="share of steps with source self-attention")
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--cfg", type=float, default=7.5)
-    p.add_argument("--trim", action="store_true", help="keep the start of motions longer than the model's canvas")
-    p.add_argument("--skeleton", default=None,
-                   help="skeleton.json with the training bone lengths (default: found next to the model or its data)")
-    p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
-    p.add_argument("--bf16", action="store_true", help="run the denoiser in bf16 (faster, less exact inversion)")
-    p.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
-    add_bvh_units(p)
-    p.set_defaults(func=cmd_edit_real)
-
-
-def cmd_edit_real(a) -> int:
-    from ..cli import _progress_bar, print_warnings
-    from ..motion.motion import check_output_paths
-    from ..pipeline import load_pipeline
-
-    reweight = parse_reweight(a.reweight)
-    check_output_paths(a.output + a.reconstruction)
-    if a.side_by_side and Path(a.side_by_side).suffix.lower() != ".mp4":
-        raise ValueError(f"{a.side_by_side}: unsupported output type for --side-by-side; use .mp4")
-    pipe = load_pipeline(a.model)
-    pipe.check_edit(a.source, a.target, a.mode, reweight, a.mirror)
-    steps, cfg, _, _ = pipe.check_sampling(a.steps, a.cfg, "ddim")
-    from .inversion import METHODS
-    if a.inversion not in METHODS:
-        raise ValueError(f"--inversion must be one of {', '.join(METHODS)}, got {a.inversion!r}")
-    bar, update = _progress_bar("inverting")
-    real, inv = invert_real(pipe, a.input, a.source, method=a.inversion, steps=steps, cfg=cfg, fp32=not a.bf16,
-                            bone_lengths=a.skeleton, trim=a.trim, progress=update)
-    bar.close()
-    bar, update = _progress_bar("editing")
-    res = edit_inverted(pipe, inv, a.target, a.mode, a.tau, reweight, a.mirror, a.self_inject,
-                        correct=not a.no_correct, progress=update, foot_lock=not a.no_foot_lock)
-    bar.close()
-    print_warnings(res.edited)
-    err = mpjpe(res.source.joints, real.joints)
-    notes = [f"{k}={v}" for k, v in real.info.items() if k in ("retargeted", "dropped_frames", "trimmed_from_frames")]
-    print(f"{real.source}: {real.frames} frames; reconstruction MPJPE {100 * err:.2f} cm; inversion "
-          f"{res.params['inversion_seconds']:.1f} s, edit {res.params['edit_seconds']:.1f} s ({', '.join(notes)})")
-    for path in a.output:
-        res.edited.save(path, bvh_units=a.bvh_units)
-        print(f"wrote {path}")
-    for path in a.reconstruction:
-        res.source.save(path, bvh_units=a.bvh_units)
-        print(f"wrote {path}")
-    if a.side_by_side:
-        from ..render import render_side_by_side
-        render_side_by_side([real.joints, res.source.joints, res.edited.joints],
-                            ["input", "reconstruction", f"edited ({a.mode})"], a.side_by_side)
-        print(f"wrote {a.side_by_side}")
-    return 0

@@ -25,6 +25,8 @@ from .quaternion import qbetween, qinv, qmul, qrot, quat_to_cont6d
 
 FEATURE_DIM = 263
 FPS = 20
+# The shortest motion the model makes or takes: 4 latent frames (the VAE's latent has T/4 frames).
+MIN_AUTO_FRAMES = 16
 ROOT_SLICE = slice(0, 4)
 RIC_SLICE = slice(4, 4 + 21 * 3)
 ROT_SLICE = slice(67, 67 + 21 * 6)
