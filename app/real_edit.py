@@ -60,9 +60,8 @@ def edit_real(studio: Studio, session: Session, req: RealEditRequest, motion: Re
     folder = session.new_folder()
     try:
         res, timings = studio.sample_locked(req.steps, progress, lambda _report: studio.pipe.edit_real(
-            motion.motion, req.source, req.target, mode=req.mode, steps=req.steps, cfg=req.cfg, tau=req.tau,
-            reweight=dict(req.reweight) or None, mirror=req.mirror, self_inject=req.self_inject,
-            inversion=req.inversion, trim=True, progress=_stages(progress, req.steps), foot_lock=req.foot_lock))
+            motion.motion, req.source, steps=req.steps, cfg=req.cfg, spec=req.spec, inversion=req.inversion,
+            trim=True, progress=_stages(progress, req.steps), foot_lock=req.foot_lock))
         timings.update(inversion_s=float(res.params["inversion_seconds"]), edit_s=float(res.params["edit_seconds"]))
         stem, edited = file_stem(req), res.edited
         saved = file_writer.submit(save_motion, edited, folder, f"{stem}_edited")

@@ -202,9 +202,8 @@ class Studio:
             return reused
         folder = session.new_folder()
         res, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.edit(
-            req.source, req.target, mode=req.mode, seed=req.seed, seconds=req.seconds, steps=req.steps, cfg=req.cfg,
-            sampler=req.sampler, tau=req.tau, reweight=dict(req.reweight) or None, mirror=req.mirror,
-            self_inject=req.self_inject, progress=report, foot_lock=req.foot_lock))
+            req.source, seed=req.seed, seconds=req.seconds, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
+            progress=report, foot_lock=req.foot_lock, spec=req.spec))
         stem = file_stem(req)
         saved = [file_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
                  file_writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]

@@ -9,7 +9,7 @@ from numbers import Real
 from pathlib import Path
 
 from salad.motion.representation import FPS
-from salad.editing.build import EDIT_MODES
+from salad.editing.spec import EDIT_MODES, EditSpec
 from salad.pipeline import MIN_AUTO_FRAMES
 
 from . import controls
@@ -150,8 +150,17 @@ def parse_attention(maps, word, layers, first_step, last_step) -> AttentionReque
 
 # ---------------------------------------------------------------- editing
 
+class _Edit:
+    """The edit settings a request carries, as the EditSpec the pipeline takes."""
+
+    @property
+    def spec(self) -> EditSpec:
+        return EditSpec(mode=self.mode, target=self.target, tau=self.tau, reweight=self.reweight, mirror=self.mirror,
+                        self_inject=self.self_inject)
+
+
 @dataclass(frozen=True)
-class EditRequest:
+class EditRequest(_Edit):
     source: str
     target: str | None              # swap / refine: the edited prompt; None: the source prompt is kept
     mode: str                       # swap | refine | reweight | mirror
@@ -212,13 +221,13 @@ def parse_edit(pipe, source, mode, target, tau, reweight_word, reweight_scale, m
     elif mode == "reweight":
         raise ValueError(f"choose the word to re-weight, one of: {', '.join(words)}")
     half = None if mirror in (None, "", "none") else _choice("mirror", mirror, MIRROR_PARTS)
-    if mode == "mirror" and half is None:
-        half = "all"            # as the pipeline does: mirroring without a body half mirrors both
+    spec = EditSpec(mode=mode, target=tgt, tau=t, reweight=weights, mirror=half,
+                    self_inject=_number("self-attention injection", self_inject, 0.0, 1.0))
     duration = _duration(pipe, auto_length, seconds)
     seed, n_steps, scale, sampler = _sampling(pipe, seed, steps, cfg, sampler)
-    return EditRequest(source=src, target=tgt, mode=mode, tau=t, reweight=weights, mirror=half,
-                       self_inject=_number("self-attention injection", self_inject, 0.0, 1.0), seconds=duration,
-                       seed=seed, steps=n_steps, cfg=scale, sampler=sampler, foot_lock=_flag("foot lock", foot_lock))
+    return EditRequest(source=src, target=tgt, mode=mode, tau=t, reweight=spec.reweight, mirror=spec.mirror,
+                       self_inject=spec.self_inject, seconds=duration, seed=seed, steps=n_steps, cfg=scale,
+                       sampler=sampler, foot_lock=_flag("foot lock", foot_lock))
 
 
 # ---------------------------------------------------------------- guided control
@@ -288,7 +297,7 @@ def parse_control(pipe, prompt, task, preset, seconds, speed, upload, example, k
 # ---------------------------------------------------------------- editing real motions
 
 @dataclass(frozen=True)
-class RealEditRequest:
+class RealEditRequest(_Edit):
     input_name: str                 # the uploaded file's name or the test clip's id
     input_kind: str                 # bvh | joints | features | clip
     input_digest: str               # sha256 of the uploaded file, or the clip's id: equal inputs, equal requests

@@ -18,8 +18,8 @@ from .checkpoint import CheckpointError
 from .files import REPO_ROOT
 from .diffusion.sampling import sample
 from .diffusion.schedule import SAMPLERS, DiffusionConfig, NoiseSchedule
-from .editing.build import build_edit, edit_arguments
-from .editing.spec import EditResult
+from .editing.build import build_edit
+from .editing.spec import DEFAULT_SELF_INJECT, EditResult, EditSpec
 from .config import from_dict
 from .models.denoiser import Denoiser
 from .models.io import load_denoiser, load_vae, vae_latent_checksums
@@ -195,7 +195,8 @@ class Pipeline:
 
     # ------------------------------------------------------------ guided control
     def control(self, prompt: str, targets=None, mask=None, seed: int = 0, strength: float = 1.0, steps: int = 50,
-                cfg: float = 7.5, repeats=None, signal=None, progress: Progress | None = None, edit: dict | None = None,
+                cfg: float = 7.5, repeats=None, signal=None, progress: Progress | None = None,
+                edit: EditSpec | dict | None = None,
                 gradient_steps: int | None = None, refine_steps: int | None = None,
                 foot_lock: bool = True) -> Motion | EditResult:
         """Text -> motion that also meets joint position targets (MoLA's training-free guidance).
@@ -207,9 +208,9 @@ class Pipeline:
         gradient_steps the guidance steps per network evaluation and refine_steps those
         on the final latent (defaults in salad.diffusion.guidance).
 
-        edit runs an attention edit during guided sampling, with Pipeline.edit's arguments
-        as keys (target = its target_prompt): {"mode": "mirror", "mirror": "upper"} or
-        {"target": "a person runs forward", "mode": "swap", "tau": 0.8}. The source and the
+        edit runs an attention edit during guided sampling: an EditSpec, such as
+        EditSpec(mode="mirror", mirror="upper") or EditSpec(target="a person runs forward"), or a
+        dict with its fields as keys ({"mode": "mirror", "mirror": "upper"}). The source and the
         edited branch start from the same noise, run in one batch and both follow the
         targets; an EditResult with both motions is returned instead of a Motion.
         """
@@ -268,40 +269,24 @@ class Pipeline:
         params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler="ddim", strength=strength)
         return EditResult(source, edited, source.attention, edited.attention, params)
 
-    def _control_edit(self, prompt: str, edit: dict, steps: int, frames: int):
+    def _control_edit(self, prompt: str, edit: EditSpec | dict, steps: int, frames: int):
         """Encoded text, edit plan and the two branch prompts for Pipeline.control(edit=...)."""
-        from .editing.build import EDIT_KEYS
-
-        if not isinstance(edit, dict):
-            raise ValueError(f"edit must be a dict such as {{'mode': 'mirror', 'mirror': 'upper'}}, "
-                             f"got {type(edit).__name__}")
-        unknown = sorted(set(edit) - set(EDIT_KEYS))
-        if unknown:
-            raise ValueError(f"unknown edit option(s) {', '.join(map(repr, unknown))}; use {', '.join(EDIT_KEYS)}")
-        target = edit.get("target")
-        mode = edit.get("mode") or ("swap" if target is not None else "mirror" if edit.get("mirror") else
-                                    "reweight" if edit.get("reweight") else None)
-        if mode is None:
-            raise ValueError("edit needs a mode, a target prompt, a mirror part or re-weighted words")
-        prompt, target, mirror = self.check_edit(prompt, target, mode, edit.get("reweight"), edit.get("mirror"))
+        spec = EditSpec.of(edit)
+        prompt, target = self.check_edit(prompt, spec)
         text = self.encode_text(["", "", prompt, target])
-        plan = build_edit(text, steps, frames, mode, prompt, target, tau=edit.get("tau"), reweight=edit.get("reweight"),
-                          mirror=mirror, self_inject=edit.get("self_inject", 0.2))
-        return text, plan, [prompt, target]
+        return text, build_edit(text, steps, frames, spec, prompt, target), [prompt, target]
 
     # ------------------------------------------------------------ editing
-    def check_edit(self, source_prompt: str, target_prompt: str | None, mode: str, reweight: dict | None,
-                   mirror: str | None) -> tuple[str, str, str | None]:
-        """Cleaned source and target prompts and the mirrored part of an edit request, or a clear error."""
+    def check_edit(self, source_prompt: str, spec: EditSpec) -> tuple[str, str]:
+        """The cleaned source and edited prompts of an edit, or a clear error."""
         source_prompt = self.check_prompt(source_prompt)
-        target_prompt = None if target_prompt is None else self.check_prompt(target_prompt)
-        target_prompt, mirror = edit_arguments(mode, source_prompt, target_prompt, reweight, mirror)
-        return source_prompt, target_prompt, mirror
+        return source_prompt, self.check_prompt(spec.target_prompt(source_prompt))
 
     def edit(self, source_prompt: str, target_prompt: str | None = None, mode: str = "swap", seed: int = 0,
              seconds: float | str | None = None, steps: int = 50, cfg: float = 7.5, sampler: str = "ddim",
              tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
-             self_inject: float = 0.2, progress: Progress | None = None, foot_lock: bool = True) -> EditResult:
+             self_inject: float = DEFAULT_SELF_INJECT, progress: Progress | None = None, foot_lock: bool = True,
+             spec: EditSpec | None = None) -> EditResult:
         """Zero-shot edit by cross-attention modulation (SALAD Algorithm 1).
 
         mode: "swap" (target_prompt replaces words; the source's maps lead while the
@@ -311,14 +296,17 @@ class Pipeline:
         "lower" | "upper" | "all"). reweight and mirror also compose with swap/refine.
         Source and edited branches, with their CFG rows, run in one batched forward
         from the same noise. Returns both motions and both attention maps.
+        The edit may instead come as spec=EditSpec(...) (salad.editing.spec), without those keywords.
         """
-        source_prompt, target_prompt, mirror = self.check_edit(source_prompt, target_prompt, mode, reweight, mirror)
+        spec = EditSpec.from_arguments(spec, mode=mode, target=target_prompt, tau=tau, reweight=reweight,
+                                       mirror=mirror, self_inject=self_inject)
+        source_prompt, target_prompt = self.check_edit(source_prompt, spec)
         frames = self.frames_for(seconds)
         steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
         canvas = frames or self.canvas_frames
 
         text = self.encode_text(["", "", source_prompt, target_prompt])
-        plan = build_edit(text, steps, canvas, mode, source_prompt, target_prompt, tau, reweight, mirror, self_inject)
+        plan = build_edit(text, steps, canvas, spec, source_prompt, target_prompt)
         edit, store = plan.controller, plan.store
 
         noise = self.noise(1, canvas, seed).repeat(2, 1, 1, 1)        # the same z_T for both branches
@@ -337,8 +325,9 @@ class Pipeline:
     def edit_real(self, motion, source_prompt: str, target_prompt: str | None = None, mode: str = "swap",
                   **params) -> EditResult:
         """Edit a real motion (BVH path, (T,22,3) joints or (T,263) features) by text: VAE encoding,
-        inversion (negative-prompt by default), then the attention edit. `.source` is the
-        reconstruction. See salad.editing.real.edit_real for the parameters."""
+        inversion (negative-prompt by default), then the attention edit (keywords as Pipeline.edit, or
+        spec=EditSpec(...)). `.source` is the reconstruction. See salad.editing.real.edit_real for the
+        parameters."""
         from .editing.real import edit_real
         return edit_real(self, motion, source_prompt, target_prompt, mode, **params)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import math
 
+from ..editing.spec import MIRROR_PARTS, EditSpec
 from ..motion.control import (PATH_PRESETS, ControlSignal, control_errors, crop_signal, lower_body_signal, parse_points,
                              path_signal, preset_path, read_keyframes, read_mola_control, read_motion_joints,
                              read_targets)
@@ -43,7 +44,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     c.add_argument("--repeats", type=int, default=None, help="time-travel repeats per step (default: 1-3 by phase)")
     c.add_argument("--gradient-steps", type=int, default=None, help="guidance steps per network evaluation")
     c.add_argument("--refine-steps", type=int, default=None, help="guidance steps on the final latent")
-    c.add_argument("--mirror", choices=("lower", "upper", "all"), default=None,
+    c.add_argument("--mirror", choices=MIRROR_PARTS, default=None,
                    help="also mirror these limbs by attention editing; the unedited motion is written next to each "
                         "output with a _source suffix")
     c.add_argument("--model", default=None, help="model directory (default: the embedded model)")
@@ -112,7 +113,7 @@ def cmd_control(a) -> int:
     res = pipe.control(a.prompt, signal=sig, seed=a.seed, strength=a.strength, steps=a.steps, cfg=a.cfg,
                        repeats=a.repeats, gradient_steps=a.gradient_steps, refine_steps=a.refine_steps,
                        progress=update, foot_lock=not a.no_foot_lock,
-                       edit=None if a.mirror is None else {"mode": "mirror", "mirror": a.mirror})
+                       edit=None if a.mirror is None else EditSpec(mode="mirror", mirror=a.mirror))
     bar.close()
     motions = [("", res)] if a.mirror is None else [("", res.edited), ("_source", res.source)]
     print_warnings(*(m for _, m in motions))

@@ -3,19 +3,25 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..editing.spec import DEFAULT_SELF_INJECT, EDIT_MODES, MIRROR_PARTS, EditSpec
 from ..editing.real import DEFAULT_INVERSION, edit_inverted, invert_real, mpjpe
 from .common import add_bvh_units, parse_reweight, print_warnings, progress_bar
+
+
+def edit_spec(a) -> EditSpec:
+    """The edit that `salad edit` and `salad edit-real` arguments describe."""
+    return EditSpec(mode=a.mode, target=a.target, tau=a.tau, reweight=parse_reweight(a.reweight), mirror=a.mirror,
+                    self_inject=a.self_inject)
 
 
 def cmd_edit(a) -> int:
     from ..pipeline import load_pipeline
     from ..render import render_side_by_side
     pipe = load_pipeline(a.model, bf16=not a.fp32)
-    reweight = parse_reweight(a.reweight)
+    spec = edit_spec(a)
     bar, update = progress_bar("editing")
-    res = pipe.edit(a.source, a.target, mode=a.mode, seed=a.seed, seconds=a.seconds, steps=a.steps, cfg=a.cfg,
-                    sampler=a.sampler, tau=a.tau, reweight=reweight, mirror=a.mirror,
-                    self_inject=a.self_inject, progress=update, foot_lock=not a.no_foot_lock)
+    res = pipe.edit(a.source, seed=a.seed, seconds=a.seconds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
+                    progress=update, foot_lock=not a.no_foot_lock, spec=spec)
     bar.close()
     print_warnings(res.source, res.edited)
     out = Path(a.output)
@@ -33,12 +39,12 @@ def add_edit(sub) -> None:
     e = sub.add_parser("edit", help="zero-shot edit by attention modulation; writes NPY, BVH and a side-by-side MP4")
     e.add_argument("source", help="source prompt")
     e.add_argument("target", nargs="?", default=None, help="target prompt (swap, refine)")
-    e.add_argument("--mode", choices=("swap", "refine", "reweight", "mirror"), default="swap")
+    e.add_argument("--mode", choices=EDIT_MODES, default="swap")
     e.add_argument("-o", "--output", required=True, help="output directory")
     e.add_argument("--tau", type=float, default=None, help="source maps lead while t >= tau*T (swap default 0.8 = the first 20%% of the steps; refine 0 = all)")
     e.add_argument("--reweight", action="append", metavar="WORD=SCALE", help="scale a word's attention (-3..3)")
-    e.add_argument("--mirror", choices=("lower", "upper", "all"), default=None)
-    e.add_argument("--self-inject", type=float, default=0.2, help="share of steps with source self-attention")
+    e.add_argument("--mirror", choices=MIRROR_PARTS, default=None)
+    e.add_argument("--self-inject", type=float, default=DEFAULT_SELF_INJECT, help="share of steps with source self-attention")
     e.add_argument("--seconds", default=None)
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--steps", type=int, default=50)
@@ -68,8 +74,8 @@ def add_edit_real(sub) -> None:
                    help="sample without the per-step corrections (the source branch then only approximates the input)")
     p.add_argument("--tau", type=float, default=None, help="share of T led by the source maps (swap: 0.8)")
     p.add_argument("--reweight", action="append", metavar="WORD=SCALE", help="scale a word's attention (-3..3)")
-    p.add_argument("--mirror", choices=("lower", "upper", "all"), default=None)
-    p.add_argument("--self-inject", type=float, default=0.2, help="share of steps with source self-attention")
+    p.add_argument("--mirror", choices=MIRROR_PARTS, default=None)
+    p.add_argument("--self-inject", type=float, default=DEFAULT_SELF_INJECT, help="share of steps with source self-attention")
     p.add_argument("--steps", type=int, default=50)
     p.add_argument("--cfg", type=float, default=7.5)
     p.add_argument("--trim", action="store_true", help="keep the start of motions longer than the model's canvas")
@@ -86,12 +92,12 @@ def cmd_edit_real(a) -> int:
     from ..motion.motion import check_output_paths
     from ..pipeline import load_pipeline
 
-    reweight = parse_reweight(a.reweight)
+    spec = edit_spec(a)
     check_output_paths(a.output + a.reconstruction)
     if a.side_by_side and Path(a.side_by_side).suffix.lower() != ".mp4":
         raise ValueError(f"{a.side_by_side}: unsupported output type for --side-by-side; use .mp4")
     pipe = load_pipeline(a.model)
-    pipe.check_edit(a.source, a.target, a.mode, reweight, a.mirror)
+    pipe.check_edit(a.source, spec)
     steps, cfg, _, _ = pipe.check_sampling(a.steps, a.cfg, "ddim")
     from ..editing.inversion import METHODS
     if a.inversion not in METHODS:
@@ -101,8 +107,7 @@ def cmd_edit_real(a) -> int:
                             bone_lengths=a.skeleton, trim=a.trim, progress=update)
     bar.close()
     bar, update = progress_bar("editing")
-    res = edit_inverted(pipe, inv, a.target, a.mode, a.tau, reweight, a.mirror, a.self_inject,
-                        correct=not a.no_correct, progress=update, foot_lock=not a.no_foot_lock)
+    res = edit_inverted(pipe, inv, correct=not a.no_correct, progress=update, foot_lock=not a.no_foot_lock, spec=spec)
     bar.close()
     print_warnings(res.edited)
     err = mpjpe(res.source.joints, real.joints)

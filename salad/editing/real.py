@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .spec import EditResult
+from .spec import DEFAULT_SELF_INJECT, EditResult, EditSpec
 
 if TYPE_CHECKING:
     import torch
@@ -277,21 +277,24 @@ def reconstruct(pipe, inv: Inversion, correct: bool = False, progress=None) -> M
 
 def edit_inverted(pipe, inv: Inversion, target_prompt: str | None = None, mode: str = "swap",
                   tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
-                  self_inject: float = 0.2, correct: bool = True, progress=None, foot_lock: bool = True) -> EditResult:
+                  self_inject: float = DEFAULT_SELF_INJECT, correct: bool = True, progress=None,
+                  foot_lock: bool = True, spec: EditSpec | None = None) -> EditResult:
     """Algorithm 1 from an inverted trajectory: the source branch replays the inversion
     (exactly, with correct=True), the edited branch starts from the same z_T and gets the
-    same per-step corrections."""
+    same per-step corrections. The edit as Pipeline.edit's keywords or spec=EditSpec(...)."""
     from .build import build_edit
     from .inversion import replay
 
-    source_prompt, target_prompt, mirror = pipe.check_edit(inv.prompt, target_prompt, mode, reweight, mirror)
+    spec = EditSpec.from_arguments(spec, mode=mode, target=target_prompt, tau=tau, reweight=reweight, mirror=mirror,
+                                   self_inject=self_inject)
+    source_prompt, target_prompt = pipe.check_edit(inv.prompt, spec)
     # The source branch replays the inversion with its own unconditional row; the edited branch
     # keeps plain guidance (empty prompt). With the source prompt as the edited branch's negative
     # prompt, guidance multiplies the whole edit by the CFG scale: a mirrored walk stopped walking
     # (6.9 -> 0.3 m) and walk -> run became a 5 m/s dash, where the empty prompt gives a run.
     text = pipe.encode_text([_uncond_prompt(inv), "", source_prompt, target_prompt])
     frames = 4 * inv.latent_frames
-    plan = build_edit(text, inv.steps, frames, mode, source_prompt, target_prompt, tau, reweight, mirror, self_inject)
+    plan = build_edit(text, inv.steps, frames, spec, source_prompt, target_prompt)
     controller, store, params = plan.controller, plan.store, plan.params
     start = time.perf_counter()
     z = replay(pipe, inv, text, controller=controller, correct=correct, progress=progress)
@@ -306,13 +309,14 @@ def edit_inverted(pipe, inv: Inversion, target_prompt: str | None = None, mode: 
 
 def edit_real(pipe, motion, source_prompt: str, target_prompt: str | None = None, mode: str = "swap",
               steps: int = 50, cfg: float = 7.5, tau: float | None = None, reweight: dict[str, float] | None = None,
-              mirror: str | None = None, self_inject: float = 0.2, inversion: str = DEFAULT_INVERSION,
+              mirror: str | None = None, self_inject: float = DEFAULT_SELF_INJECT, inversion: str = DEFAULT_INVERSION,
               correct: bool = True, fp32: bool = True, bone_lengths=None, retarget: bool | None = None,
-              trim: bool = False, progress=None, foot_lock: bool = True, **inversion_params) -> EditResult:
+              trim: bool = False, progress=None, foot_lock: bool = True, spec: EditSpec | None = None,
+              **inversion_params) -> EditResult:
     """Edit a real motion by text (SALAD Algorithm 1 after inversion).
 
     motion: a .bvh/.npy path, joints (T, 22, 3) in metres, or raw features (T, 263).
-    mode and its parameters as Pipeline.edit ("swap", "refine", "reweight", "mirror").
+    mode and its parameters as Pipeline.edit ("swap", "refine", "reweight", "mirror"), or spec=EditSpec(...).
     inversion: one of salad.editing.inversion.METHODS; correct=True adds per-step
     corrections so the source branch reproduces the VAE reconstruction exactly.
     .source is the reconstruction (source.info["mpjpe_m"]: its error against the input),
@@ -323,7 +327,9 @@ def edit_real(pipe, motion, source_prompt: str, target_prompt: str | None = None
 
     if inversion not in METHODS:
         raise ValueError(f"inversion must be one of {', '.join(METHODS)}, got {inversion!r}")
-    pipe.check_edit(source_prompt, target_prompt, mode, reweight, mirror)   # fail before the slow part
+    spec = EditSpec.from_arguments(spec, mode=mode, target=target_prompt, tau=tau, reweight=reweight, mirror=mirror,
+                                   self_inject=self_inject)
+    pipe.check_edit(source_prompt, spec)   # fail before the slow part
     steps, cfg, _, _ = pipe.check_sampling(steps, cfg, "ddim")
     total = 2 * steps
 
@@ -333,8 +339,7 @@ def edit_real(pipe, motion, source_prompt: str, target_prompt: str | None = None
     real, inv = invert_real(pipe, motion, source_prompt, method=inversion, steps=steps, cfg=cfg, fp32=fp32,
                             bone_lengths=bone_lengths, retarget=retarget, trim=trim, progress=inner(0),
                             **inversion_params)
-    res = edit_inverted(pipe, inv, target_prompt, mode, tau, reweight, mirror, self_inject, correct, inner(steps),
-                        foot_lock)
+    res = edit_inverted(pipe, inv, correct=correct, progress=inner(steps), foot_lock=foot_lock, spec=spec)
     res.source.info.update(mpjpe_m=mpjpe(res.source.joints, real.joints),
                            global_mpjpe_m=mpjpe(res.source.joints, real.joints, root_relative=False))
     res.params.update(input=real.source, input_frames=real.frames, **real.info)
