@@ -8,9 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
+from salad.data.dataset import read_captions, read_clip, read_split
+from salad.data.labels import pick_test_clips, read_labels
 from salad.motion import representation as rep
-from salad.motion import skeleton as sk
-from salad.pipeline import MIN_AUTO_FRAMES
+from salad.motion.bvh import BvhError, load_bvh
+from salad.motion.real import input_kind, min_input_frames
 
 from .controls import Upload, display_name, load_array, upload_file
 from .settings import MAX_CLIPS, REAL_UPLOAD_TYPES
@@ -50,8 +52,6 @@ def read_upload(path: Path, name: str) -> RealInput:
     (joints (T, 22, 3) in metres, or raw features (T, 263)), checked for shape, values and length.
     Messages name the file as the user called it, never the server path."""
     if name.lower().endswith(".bvh"):
-        from salad.motion.bvh import BvhError, load_bvh
-
         try:
             joints = load_bvh(path, fps=rep.FPS).joints
         except (BvhError, ValueError) as exc:      # the reader's messages start with the server path
@@ -59,22 +59,17 @@ def read_upload(path: Path, name: str) -> RealInput:
             raise ValueError(f"{name}: not a readable BVH file ({reason})") from None
         if not np.isfinite(joints).all():
             raise ValueError(f"{name}: the BVH file gives NaN or infinite joint positions")
-        _check_length(name, len(joints), MIN_AUTO_FRAMES + 1)
+        _check_length(name, len(joints), min_input_frames("joints"))
         return RealInput(name, "bvh", joints, joints)
     arr = load_array(path, name).astype(np.float32)
-    if arr.ndim == 3 and arr.shape[1:] == (sk.NUM_JOINTS, 3):
-        kind, shown = "joints", arr
-        _check_length(name, len(arr), MIN_AUTO_FRAMES + 1)
-    elif arr.ndim == 2 and arr.shape[1] == 263:
-        kind = "features"
-        _check_length(name, len(arr), MIN_AUTO_FRAMES)
-    else:
+    kind = input_kind(arr)
+    if kind is None:
         raise ValueError(f"{name}: expected joints (T, 22, 3) in metres or HumanML3D features (T, 263), "
                          f"got shape {arr.shape}")
+    _check_length(name, len(arr), min_input_frames(kind))
     if not np.isfinite(arr).all():
         raise ValueError(f"{name}: contains NaN or infinite values")
-    if kind == "features":
-        shown = rep.features_to_joints(arr).astype(np.float32)
+    shown = arr if kind == "joints" else rep.features_to_joints(arr).astype(np.float32)
     return RealInput(name, kind, shown, arr)
 
 
@@ -91,14 +86,9 @@ class ClipLibrary:
     over the test split (over the labelled test clips when the build has labels.json)."""
 
     def __init__(self, root: str | Path, limit: int = MAX_CLIPS):
-        from salad.data.dataset import read_captions, read_split
-
         self.root = Path(root)
         names = read_split(self.root, "test")
         if (self.root / "labels.json").is_file():
-            from salad.data.labels import read_labels
-            from salad.eval.real_edit_bench import pick_test_clips
-
             listed = set(names)
             labels = {k: v for k, v in read_labels(self.root).items() if k in listed}
             names = pick_test_clips(labels, limit) if labels else []
@@ -138,8 +128,6 @@ class ClipLibrary:
 
     def read(self, name, max_frames: int) -> RealInput:
         """A clip's raw features (its first max_frames) as an input to edit."""
-        from salad.eval.real_edit_bench import read_clip
-
         clip = self._clip(name)
         try:
             features, caption = read_clip(self.root, clip.name, max_frames)
@@ -147,7 +135,7 @@ class ClipLibrary:
             log.error("reading clip %s failed: %s", clip.name, exc)
             raise ValueError(f"{clip.name}: the clip cannot be read from the dataset build") from None
         features = np.asarray(features, dtype=np.float32)
-        if features.ndim != 2 or features.shape[1] != 263 or not np.isfinite(features).all():
+        if input_kind(features) != "features" or not np.isfinite(features).all():
             raise ValueError(f"{clip.name}: the dataset build holds no valid features for this clip")
-        _check_length(clip.name, len(features), MIN_AUTO_FRAMES)
+        _check_length(clip.name, len(features), min_input_frames("features"))
         return RealInput(clip.name, "clip", rep.features_to_joints(features).astype(np.float32), features, caption)

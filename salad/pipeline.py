@@ -16,10 +16,14 @@ import torch
 
 from .checkpoint import CheckpointError
 from .files import REPO_ROOT
+from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, default_repeats, guided_sample,
+                                 position_loss)
 from .diffusion.sampling import sample
 from .diffusion.schedule import SAMPLERS, DiffusionConfig, NoiseSchedule
-from .editing.build import build_edit
+from .editing.build import build_edit, step_follower
+from .editing.real import edit_real
 from .editing.spec import DEFAULT_SELF_INJECT, EditResult, EditSpec
+from .editing.store import AttentionStore
 from .config import from_dict
 from .models.denoiser import Denoiser
 from .models.io import load_denoiser, load_vae, vae_latent_checksums
@@ -28,6 +32,7 @@ from .models.vae import MotionVAE
 from .models.vocabulary import PromptCheck
 from .precision import bf16_supported
 from .motion.cleanup import clean_motion
+from .motion.control import control_errors, make_signal
 from .motion.motion import Motion
 from .motion.representation import FPS, MIN_AUTO_FRAMES, Normalizer, features_to_joints
 
@@ -155,7 +160,6 @@ class Pipeline:
         text = self.encode_text([""] * batch + [prompt] * batch)
         store = None
         if return_attention:
-            from .editing.store import AttentionStore
             store = AttentionStore(text, rows=slice(batch, 2 * batch), frames=canvas)
             self.denoiser.set_controller(store)
         try:
@@ -214,11 +218,6 @@ class Pipeline:
         edited branch start from the same noise, run in one batch and both follow the
         targets; an EditResult with both motions is returned instead of a Motion.
         """
-        from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, default_repeats, guided_sample,
-                                         position_loss)
-        from .editing.build import step_follower
-        from .motion.control import control_errors, make_signal
-
         prompt = self.check_prompt(prompt)
         sig = signal if signal is not None else make_signal(targets, mask)
         frames = (sig.frames // 4) * 4
@@ -328,7 +327,6 @@ class Pipeline:
         inversion (negative-prompt by default), then the attention edit (keywords as Pipeline.edit, or
         spec=EditSpec(...)). `.source` is the reconstruction. See salad.editing.real.edit_real for the
         parameters."""
-        from .editing.real import edit_real
         return edit_real(self, motion, source_prompt, target_prompt, mode, **params)
 
 

@@ -9,7 +9,7 @@ import pytest
 from gradio_client import handle_file
 from gradio_client.exceptions import AppError
 
-from salad.eval.real_edit_bench import read_clip
+from salad.data.dataset import read_clip
 from salad.motion import representation as rep
 from salad.motion.cleanup import clean_motion
 from salad.motion.bvh import load_bvh, save_bvh

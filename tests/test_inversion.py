@@ -10,8 +10,10 @@ import torch
 from conftest import synthetic_walk
 from salad.diffusion.schedule import NoiseSchedule
 from salad.editing.inversion import METHODS, ddim_grid, ddim_step, invert, renoise, x0_eps
-from salad.editing.real import (decode, edit_inverted, edit_real, encode, load_real_motion, mpjpe, reconstruct,
-                                root_path_deviation, root_path_error, sdedit)
+from salad.editing.real import decode, edit_inverted, edit_real, encode, reconstruct
+from salad.eval.edit_metrics import mpjpe, root_path_deviation, root_path_error
+from salad.eval.sdedit import sdedit
+from salad.motion.real import load_real_motion
 from salad.motion import representation as rep
 from salad.pipeline import load_pipeline
 

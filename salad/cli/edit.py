@@ -4,7 +4,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..editing.spec import DEFAULT_SELF_INJECT, EDIT_MODES, MIRROR_PARTS, EditSpec
-from ..editing.real import DEFAULT_INVERSION, edit_inverted, invert_real, mpjpe
+from ..editing.real import DEFAULT_INVERSION, edit_inverted, invert_real
+from ..eval.edit_metrics import mpjpe
 from .common import add_bvh_units, parse_reweight, print_warnings, progress_bar
 
 

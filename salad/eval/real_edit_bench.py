@@ -24,7 +24,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..data.captions import swap_left_right
-from ..data.labels import read_labels
+from ..data.dataset import read_clip
+from ..data.labels import pick_test_clips, read_labels
 
 # torch-backed modules are imported where they are used, so that registering the command is cheap
 
@@ -33,29 +34,6 @@ STYLE_SOURCE = "a person walks forward in an ordinary way"
 STYLE_TARGET = "a person walks forward in an exhausted way"
 
 Log = Callable[[str], None]
-
-
-# ---------------------------------------------------------------- clips
-
-def pick_test_clips(labels: dict, n: int, content: str | None = None, style: str | None = None) -> list[str]:
-    """n test clips spread evenly over the sorted ids that match content/style."""
-    names = sorted(k for k, v in labels.items() if v.split == "test" and (content is None or v.content == content)
-                   and (style is None or v.style == style))
-    if not names:
-        raise ValueError(f"no test clips with content={content!r} style={style!r}")
-    if n >= len(names):
-        return names
-    return [names[int(i)] for i in np.linspace(0, len(names) - 1, n).round()]
-
-
-def read_clip(root: Path, name: str, max_frames: int) -> tuple[np.ndarray, str]:
-    """(features cut to at most max_frames, the clip's first caption)."""
-    from ..data.dataset import read_captions
-    f = np.load(root / "new_joint_vecs" / f"{name}.npy", allow_pickle=False)
-    caps = read_captions(root / "texts" / f"{name}.txt")
-    if not caps:
-        raise ValueError(f"{root}/texts/{name}.txt: no captions")
-    return f[:max_frames], caps[0].text
 
 
 # ---------------------------------------------------------------- helpers
@@ -80,11 +58,14 @@ def _timed(fn):
 
 # ---------------------------------------------------------------- fidelity
 
+
 def fidelity(pipe, root: Path, names: list[str], methods: Sequence[str], steps: int, cfg: float,
              log: Log = print) -> dict:
     """Inversion + replay with no edit, per method; the VAE's reconstruction as the floor."""
     from ..editing.inversion import invert
-    from ..editing.real import decode, encode, load_real_motion, mpjpe, reconstruct
+    from ..editing.real import decode, encode, reconstruct
+    from ..motion.real import load_real_motion
+    from .edit_metrics import mpjpe
 
     per_clip = []
     for name in names:
@@ -114,6 +95,7 @@ def fidelity(pipe, root: Path, names: list[str], methods: Sequence[str], steps: 
 
 # ---------------------------------------------------------------- edits
 
+
 def _judge(clf, variants: dict[str, np.ndarray]) -> dict[str, dict]:
     """Classifier predictions and physical checks for named raw-feature motions."""
     names = list(variants)
@@ -130,8 +112,10 @@ def _judge(clf, variants: dict[str, np.ndarray]) -> dict[str, dict]:
 def _edit_task(pipe, clf, root: Path, names: list[str], methods: Sequence[str], steps: int, cfg: float,
                strengths: Sequence[float], seed: int, task: str, log: Log, uncorrected: bool = False) -> dict:
     from ..editing.inversion import invert
-    from ..editing.real import (decode, edit_inverted, encode, load_real_motion, mpjpe, root_path_deviation,
-                                root_path_error, sdedit)
+    from ..editing.real import decode, edit_inverted, encode
+    from ..motion.real import load_real_motion
+    from .edit_metrics import mpjpe, root_path_deviation, root_path_error
+    from .sdedit import sdedit
     from ..motion.representation import features_to_joints, mirror_features
     from .physics import physical_checks
 
@@ -205,6 +189,7 @@ def _edit_task(pipe, clf, root: Path, names: list[str], methods: Sequence[str], 
 
 
 # ---------------------------------------------------------------- the whole benchmark
+
 
 def run_real_edit_bench(pipe, data: str | Path, classifier: str | Path, out: str | Path,
                         clips: int = 10, edit_clips: int = 8, methods: Sequence[str] | None = None,
