@@ -308,7 +308,7 @@ class RealEditRequest(_Edit):
     reweight: tuple[tuple[str, float], ...]
     mirror: str | None
     self_inject: float
-    inversion: str                  # a method of salad.editing.inversion
+    inversion: str                  # a method of salad.diffusion.inversion
     steps: int
     cfg: float
     foot_lock: bool = True
@@ -320,7 +320,7 @@ def parse_real_edit(pipe, upload, clip, source, mode, target, reweight_word, rew
     an upload (under `upload_root`) or a test clip of `clips` (an app.real_input.ClipLibrary),
     never both; the edit is checked as the Edit panel's, with the edit's default τ and
     self-attention injection, and sampled with DDIM as the inversion requires."""
-    from salad.editing.inversion import METHODS
+    from salad.diffusion.inversion import METHODS
 
     up = upload_path(upload, upload_root)
     picked = clip not in (None, "", "none")

@@ -158,16 +158,11 @@ class Pipeline:
         steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
         canvas = frames or self.canvas_frames
         text = self.encode_text([""] * batch + [prompt] * batch)
-        store = None
-        if return_attention:
-            store = AttentionStore(text, rows=slice(batch, 2 * batch), frames=canvas)
-            self.denoiser.set_controller(store)
-        try:
-            on_step = (lambda i, n, x: progress(i, n)) if progress else None
+        store = AttentionStore(text, rows=slice(batch, 2 * batch), frames=canvas) if return_attention else None
+        on_step = (lambda i, n, x: progress(i, n)) if progress else None
+        with self.denoiser.controlled(store):
             z = sample(self.model_fn(text, auto=frames is None), self.noise(batch, canvas, seed), self.schedule,
                        sampler=sampler, steps=steps, cfg_scale=cfg, on_step=on_step)
-        finally:
-            self.denoiser.set_controller(None)
         motions = self.decode(z, frames, [prompt] * batch, seed, foot_lock)
         if store is not None:
             for b, m in enumerate(motions):
@@ -241,18 +236,13 @@ class Pipeline:
         g = torch.Generator().manual_seed(int(seed) + 1)
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
         noise = self.noise(1, frames, seed).repeat(len(prompts), 1, 1, 1)     # one z_T for both edit branches
-        if plan is not None:
-            self.denoiser.set_controller(plan.controller)
-        try:
+        with self.denoiser.controlled(None if plan is None else plan.controller):
             z = guided_sample(self.model_fn(text, auto=False), noise, self.schedule, loss, steps=steps, cfg_scale=cfg,
                               strength=strength, repeats=default_repeats if repeats is None else repeats,
                               gradient_steps=DEFAULT_GRADIENT_STEPS if gradient_steps is None else gradient_steps,
                               refine_steps=DEFAULT_REFINE_STEPS if refine_steps is None else refine_steps,
                               generator=g, shared_noise=plan is not None,
                               before_model=None if plan is None else step_follower(plan.controller), on_step=on_step)
-        finally:
-            if plan is not None:
-                self.denoiser.set_controller(None)
         motions = self.decode(z, frames, prompts, seed, foot_lock)
         if not all(np.isfinite(m.joints).all() for m in motions):
             raise ValueError(f"guided sampling diverged (strength {strength}, {steps} steps): "
@@ -309,13 +299,10 @@ class Pipeline:
         edit, store = plan.controller, plan.store
 
         noise = self.noise(1, canvas, seed).repeat(2, 1, 1, 1)        # the same z_T for both branches
-        self.denoiser.set_controller(edit)
-        try:
-            on_step = (lambda i, n, x: progress(i, n)) if progress else None
+        on_step = (lambda i, n, x: progress(i, n)) if progress else None
+        with self.denoiser.controlled(edit):
             z = sample(self.model_fn(text, auto=frames is None), noise, self.schedule, sampler=sampler,
                        steps=steps, cfg_scale=cfg, on_step=on_step)
-        finally:
-            self.denoiser.set_controller(None)
         source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock)
         source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
         params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler=sampler)

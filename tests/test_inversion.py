@@ -9,7 +9,7 @@ import torch
 
 from conftest import synthetic_walk
 from salad.diffusion.schedule import NoiseSchedule
-from salad.editing.inversion import METHODS, ddim_grid, ddim_step, invert, renoise, x0_eps
+from salad.diffusion.inversion import METHODS, ddim_grid, ddim_step, invert, noise_estimate, renoise
 from salad.editing.real import decode, edit_inverted, edit_real, encode, reconstruct
 from salad.eval.edit_metrics import mpjpe, root_path_deviation, root_path_error
 from salad.eval.sdedit import sdedit
@@ -49,11 +49,11 @@ def test_ddim_step_is_diffusers_step_and_renoise_undoes_it():
         for i, t in enumerate(sched.timesteps):
             out = torch.randn(x.shape, generator=g)
             ref = sched.step(out, t, x).prev_sample
-            mine = ddim_step(x, out, float(grid.alpha[i]), float(grid.alpha_next[i]), "v_prediction")
+            mine = ddim_step(schedule, x, out, grid.timesteps[i], grid.targets[i])
             torch.testing.assert_close(mine, ref, atol=2e-5, rtol=1e-4)
             # with the step's own noise estimate, renoise goes back exactly
-            _, eps = x0_eps(x, out, float(grid.alpha[i]), "v_prediction")
-            back = renoise(mine, eps, float(grid.alpha[i]), float(grid.alpha_next[i]))
+            eps = noise_estimate(schedule, x, out, grid.timesteps[i])
+            back = renoise(schedule, mine, eps, grid.timesteps[i], grid.targets[i])
             torch.testing.assert_close(back, x, atol=1e-4, rtol=1e-4)
             x = mine
 

@@ -100,7 +100,7 @@ def cmd_edit_real(a) -> int:
     pipe = load_pipeline(a.model)
     pipe.check_edit(a.source, spec)
     steps, cfg, _, _ = pipe.check_sampling(a.steps, a.cfg, "ddim")
-    from ..editing.inversion import METHODS
+    from ..diffusion.inversion import METHODS
     if a.inversion not in METHODS:
         raise ValueError(f"--inversion must be one of {', '.join(METHODS)}, got {a.inversion!r}")
     bar, update = progress_bar("inverting")

@@ -19,6 +19,7 @@ import torch
 from ..models.attention import CROSS, AttentionCall
 from ..motion import skeleton as sk
 from .align import TokenAlignment
+from .store import StepCounter
 
 
 @dataclass
@@ -38,29 +39,9 @@ def _expand(rows: slice, per_row: int) -> slice:
     return slice(rows.start * per_row, rows.stop * per_row)
 
 
-class StepCounter:
-    """Counts denoising steps: a step starts at every call of the first attention module."""
-
-    def __init__(self, total_steps: int):
-        self.total = total_steps
-        self.step = -1
-        self._first: tuple[str, int] | None = None
-
-    def see(self, call: AttentionCall) -> None:
-        key = (call.kind, call.layer)
-        if self._first is None:
-            self._first = key
-        if key == self._first:
-            self.step += 1
-
-    @property
-    def fraction(self) -> float:
-        """Share of the denoising done before this step (0 at the first step)."""
-        return max(self.step, 0) / max(self.total, 1)
-
-
 # ---------------------------------------------------------------- cross-attention rules
 # A rule maps (source map, target map), each (b, heads, T, J, L), to the target's new map.
+
 
 class KeepSource:
     """Mirroring and re-weighting on an unchanged prompt start from the source's map."""
@@ -102,6 +83,7 @@ class Refine:
 
 
 # ---------------------------------------------------------------- map transforms
+
 
 class Reweight:
     """Scale the attention of the given token positions by s (not renormalised, so s
@@ -146,6 +128,7 @@ class Mirror:
 
 
 # ---------------------------------------------------------------- the controller
+
 
 class AttentionEdit:
     """Algorithm 1: the target branch's cross-attention becomes Edit(M_source, M_target, t),

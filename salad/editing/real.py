@@ -8,7 +8,7 @@
 
 The input (a BVH file, (T, 22, 3) joints or (T, 263) features) is read, put on the training
 skeleton and canonicalised by salad.motion.real, then encoded with the VAE's mean latent; the
-latent is inverted (salad.editing.inversion) and both branches of SALAD's Algorithm 1 start from
+latent is inverted (salad.diffusion.inversion) and both branches of SALAD's Algorithm 1 start from
 the inverted z_T: the source branch reproduces the motion, the edited branch shares its start
 and its per-step corrections. The SDEdit baseline and the error measures live in salad.eval.
 """
@@ -22,7 +22,7 @@ from ..eval.edit_metrics import mpjpe
 from ..motion.motion import Motion
 from ..motion.real import RealMotion, load_real_motion, resolve_bone_lengths
 from .build import build_edit
-from .inversion import METHODS, Inversion, invert, replay
+from ..diffusion.inversion import METHODS, Inversion, invert, replay
 from .spec import DEFAULT_SELF_INJECT, EditResult, EditSpec
 
 # Chosen by measurement on 10 real test clips with the embedded model (`salad eval-real-edit`): negative-prompt
@@ -115,7 +115,7 @@ def edit_real(pipe, motion, source_prompt: str, target_prompt: str | None = None
 
     motion: a .bvh/.npy path, joints (T, 22, 3) in metres, or raw features (T, 263).
     mode and its parameters as Pipeline.edit ("swap", "refine", "reweight", "mirror"), or spec=EditSpec(...).
-    inversion: one of salad.editing.inversion.METHODS; correct=True adds per-step
+    inversion: one of salad.diffusion.inversion.METHODS; correct=True adds per-step
     corrections so the source branch reproduces the VAE reconstruction exactly.
     .source is the reconstruction (source.info["mpjpe_m"]: its error against the input),
     .edited the edit; params hold the settings and timings. foot_lock=False leaves out the foot

@@ -62,7 +62,7 @@ def _timed(fn):
 def fidelity(pipe, root: Path, names: list[str], methods: Sequence[str], steps: int, cfg: float,
              log: Log = print) -> dict:
     """Inversion + replay with no edit, per method; the VAE's reconstruction as the floor."""
-    from ..editing.inversion import invert
+    from ..diffusion.inversion import invert
     from ..editing.real import decode, encode, reconstruct
     from ..motion.real import load_real_motion
     from .edit_metrics import mpjpe
@@ -111,7 +111,7 @@ def _judge(clf, variants: dict[str, np.ndarray]) -> dict[str, dict]:
 
 def _edit_task(pipe, clf, root: Path, names: list[str], methods: Sequence[str], steps: int, cfg: float,
                strengths: Sequence[float], seed: int, task: str, log: Log, uncorrected: bool = False) -> dict:
-    from ..editing.inversion import invert
+    from ..diffusion.inversion import invert
     from ..editing.real import decode, edit_inverted, encode
     from ..motion.real import load_real_motion
     from .edit_metrics import mpjpe, root_path_deviation, root_path_error
@@ -198,7 +198,7 @@ def run_real_edit_bench(pipe, data: str | Path, classifier: str | Path, out: str
                         uncorrected: bool = False, log: Log = print) -> dict:
     """Run the three parts and write results.json and report.md into `out`. uncorrected=True
     also runs each edit without the per-step corrections."""
-    from ..editing.inversion import METHODS
+    from ..diffusion.inversion import METHODS
     from .classifiers import load_classifier
 
     root = Path(data)

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import math
 
-from ..editing.inversion import ddim_grid, sample_grid
+import torch
+
+from ..diffusion.inversion import ddim_grid, sample_grid
 from ..editing.real import decode, encode
 from ..motion.motion import Motion
 from ..motion.real import RealMotion, load_real_motion, resolve_bone_lengths
@@ -18,15 +20,14 @@ def sdedit(pipe, motion, prompt: str, strength: float = 0.5, seed: int = 0, step
     prompt = pipe.check_prompt(prompt)
     steps, cfg, _, _ = pipe.check_sampling(steps, cfg, "ddim")
     if not isinstance(motion, RealMotion):
-        motion = load_real_motion(motion, pipe.canvas_frames, resolve_bone_lengths(pipe.source, bone_lengths), trim=trim)
+        motion = load_real_motion(motion, pipe.canvas_frames, resolve_bone_lengths(pipe.source, bone_lengths),
+                                  trim=trim)
     real = motion
     z0 = encode(pipe, real)
     grid = ddim_grid(pipe.schedule, steps)
     level = strength * pipe.schedule.config.train_steps
     first = next((i for i, t in enumerate(grid.timesteps) if t < level), grid.steps - 1)
-    a = float(grid.alpha[first])
-    noise = pipe.noise(1, real.frames, seed)
-    x = math.sqrt(a) * z0 + math.sqrt(1.0 - a) * noise
+    x = pipe.schedule.add_noise(z0, pipe.noise(1, real.frames, seed), torch.tensor([grid.timesteps[first]]))
     z = sample_grid(pipe, x, grid, pipe.encode_text(["", prompt]), cfg, from_step=first, fp32=fp32)
     m = decode(pipe, z, [prompt])[0]
     m.seed = seed
