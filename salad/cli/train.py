@@ -24,10 +24,10 @@ def cmd_train(a) -> int:
         from ..training.vae_adv_task import train_vae_san
         return train_vae_san(a)
     elif a.what == "classifier":
-        from ..eval.train_classifier import train_classifier
+        from ..training.classifier_task import train_classifier
         return train_classifier(a)
     else:
-        from ..eval.train_evaluator import train_evaluator
+        from ..training.evaluator_task import train_evaluator
         return train_evaluator(a)
     trainer = Trainer(task, cfg.optim, cfg.run, ema_decay=ema)
     if a.init_from or a.continue_from:
