@@ -8,7 +8,7 @@ import shutil
 from .compare import Difference, motion_difference
 from .real_input import RealInput
 from .session import Result, Session
-from .studio import Progress, Studio, file_writer, quiet, save_motion, slug
+from .studio import StageProgress, Studio, file_writer, quiet, save_motion, slug
 from .validation import RealEditRequest
 
 
@@ -33,7 +33,7 @@ def file_stem(req: RealEditRequest) -> str:
     return f"{slug(_without_type(req.input_name), 32) or 'motion'}_{req.mode}"
 
 
-def _stages(progress: Progress, steps: int):
+def _stages(progress: StageProgress, steps: int):
     """edit_real reports (done, 2 * steps): the inversion first, then the edit."""
     def report(done: int, total: int) -> None:
         if done < steps:
@@ -49,7 +49,7 @@ def _input_label(name: str, limit: int = 32) -> str:
 
 
 def edit_real(studio: Studio, session: Session, req: RealEditRequest, motion: RealInput,
-              progress: Progress = quiet) -> Result:
+              progress: StageProgress = quiet) -> Result:
     """Invert and edit `motion` (under the model lock), save the edited motion (BVH, NPY joints
     and features) and render input, reconstruction and edit side by side."""
     from salad.render import render_side_by_side

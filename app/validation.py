@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from numbers import Real
 from pathlib import Path
 
+from salad.motion.control import lower_body_signal
 from salad.motion.representation import FPS
 from salad.editing.spec import EDIT_MODES, EditSpec
 from salad.pipeline import MIN_AUTO_FRAMES
@@ -278,7 +279,7 @@ def control_signal(pipe, task, preset, seconds, speed, upload, example, keyframe
     if task == "inbetween":
         kept = controls.parse_keyframes(keyframes, len(joints))
         return controls.inbetween_signal(joints, kept), kept, base.id
-    return controls.upper_body_signal(joints), (), base.id
+    return lower_body_signal(joints), (), base.id   # an upper-body edit keeps the lower body
 
 
 def parse_control(pipe, prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed,

@@ -9,7 +9,6 @@ import math
 import os
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -31,6 +30,7 @@ from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
 from .models.vocabulary import PromptCheck
 from .precision import bf16_supported
+from .progress import Progress
 from .motion.cleanup import clean_motion
 from .motion.control import control_errors, make_signal
 from .motion.motion import Motion
@@ -40,7 +40,6 @@ EMBEDDED_MODEL = REPO_ROOT / "assets" / "model"
 MAX_PROMPT_CHARS = 300
 ACTIVATION_THRESHOLD = 0.5
 
-Progress = Callable[[int, int], None]
 
 
 class Pipeline:

@@ -29,12 +29,11 @@ from typing import Callable
 import torch
 
 from ..models.text import TextFeatures
+from ..progress import Progress
 from .sampling import cfg_combine
 from .schedule import NoiseSchedule
 
 METHODS = ("ddim", "negative", "null_text", "fixed_point")
-
-Progress = Callable[[int, int], None]
 
 
 # ---------------------------------------------------------------- the DDIM grid

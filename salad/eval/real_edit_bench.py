@@ -230,10 +230,6 @@ def run_real_edit_bench(pipe, data: str | Path, classifier: str | Path, out: str
     return results
 
 
-def _cm(x) -> str:
-    return "–" if x is None else f"{100 * x:.2f}"
-
-
 def _pm(s: dict, k: str, scale: float = 1.0, fmt: str = "{:.2f}") -> str:
     if k not in s:
         return "–"

@@ -14,7 +14,6 @@ and returns the same kind. Work happens in torch, vectorised over frames.
 """
 from __future__ import annotations
 
-import math
 from functools import lru_cache
 
 import numpy as np
@@ -397,11 +396,3 @@ def feature_statistics(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         std[g] = std[g].mean()
     std = np.maximum(std, 1e-3)
     return mean.astype(np.float32), std.astype(np.float32)
-
-
-def frames_to_seconds(n: int) -> float:
-    return n / FPS
-
-
-def seconds_to_frames(s: float) -> int:
-    return int(math.floor(s * FPS + 0.5))

@@ -16,7 +16,7 @@ from collections import OrderedDict
 from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -29,8 +29,8 @@ import salad.render.style as style
 from .backend import gl_backend
 from .engine import engine
 from ..files import atomic_path
+from ..progress import Progress
 
-Progress = Callable[[int, int], None]
 DEFAULT_SIZE = (448, 448)
 PANEL_SIZE = (384, 384)
 BLOCK = 24          # frames of vertex data built per NumPy pass
