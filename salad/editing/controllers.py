@@ -19,6 +19,7 @@ import torch
 from ..models.attention import CROSS, AttentionCall
 from ..motion import skeleton as sk
 from .align import TokenAlignment
+from .spec import DEFAULT_SELF_INJECT, DEFAULT_TAU
 from .store import StepCounter
 
 
@@ -54,7 +55,7 @@ class WordSwap:
     """Source maps while t >= tau (the early steps), the target's own maps after.
     tau is a fraction of T: 0.8 means the first 20% of the steps follow the source."""
 
-    def __init__(self, alignment: TokenAlignment, tau: float = 0.8):
+    def __init__(self, alignment: TokenAlignment, tau: float = DEFAULT_TAU["swap"]):
         if not 0.0 <= tau <= 1.0:
             raise ValueError(f"tau must be in [0, 1], got {tau}")
         self.alignment, self.tau = alignment, tau
@@ -69,7 +70,7 @@ class Refine:
     """Target tokens aligned to a source token take its map; new tokens keep their own.
     Applied while t >= tau (tau = 0 means every step)."""
 
-    def __init__(self, alignment: TokenAlignment, tau: float = 0.0):
+    def __init__(self, alignment: TokenAlignment, tau: float = DEFAULT_TAU["refine"]):
         if not 0.0 <= tau <= 1.0:
             raise ValueError(f"tau must be in [0, 1], got {tau}")
         self.alignment, self.tau = alignment, tau
@@ -137,7 +138,7 @@ class AttentionEdit:
     prompt and hidden states, as in the paper. `observers` see the maps actually used.
     """
 
-    def __init__(self, rows: Rows, steps: int, rule, transforms=(), self_inject: float = 0.2,
+    def __init__(self, rows: Rows, steps: int, rule, transforms=(), self_inject: float = DEFAULT_SELF_INJECT,
                  observers=()):
         if not 0.0 <= self_inject <= 1.0:
             raise ValueError(f"self-attention injection must be a fraction in [0, 1], got {self_inject}")
