@@ -23,6 +23,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..files import REPO_ROOT
 from ..motion import skeleton as sk
 from ..motion.cleanup import clean_motion
 from ..motion.representation import FPS, features_to_joints
@@ -191,7 +192,6 @@ def reference_clips(data_root: str | Path, cls: FidelityClass, labels: dict, spl
 
 def _shown(path: str) -> str:
     """A model path as a report shows it: relative to the repository when inside it."""
-    from ..files import REPO_ROOT
     p = Path(path).resolve()
     return str(p.relative_to(REPO_ROOT)) if p.is_relative_to(REPO_ROOT) else str(path)
 

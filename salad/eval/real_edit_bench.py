@@ -26,8 +26,16 @@ import numpy as np
 from ..data.captions import swap_left_right
 from ..data.dataset import read_clip
 from ..data.labels import pick_test_clips, read_labels
-
-# torch-backed modules are imported where they are used, so that registering the command is cheap
+from ..diffusion.inversion import METHODS, invert
+from ..editing.real import decode, edit_inverted, encode, reconstruct
+from ..files import atomic_write_text
+from ..motion.real import load_real_motion
+from ..motion.representation import features_to_joints, mirror_features
+from .classifiers import load_classifier
+from .edit_metrics import mpjpe, root_path_deviation, root_path_error
+from .metrics import mean_ci
+from .physics import physical_checks
+from .sdedit import sdedit
 
 SDEDIT_STRENGTHS = (0.3, 0.5, 0.7)
 STYLE_SOURCE = "a person walks forward in an ordinary way"
@@ -39,7 +47,6 @@ Log = Callable[[str], None]
 # ---------------------------------------------------------------- helpers
 
 def _summary(rows: list[dict], keys: Sequence[str]) -> dict:
-    from .metrics import mean_ci
     out = {"clips": len(rows)}
     for k in keys:
         vals = [r[k] for r in rows if r.get(k) is not None and np.isfinite(r[k])]
@@ -62,10 +69,6 @@ def _timed(fn):
 def fidelity(pipe, root: Path, names: list[str], methods: Sequence[str], steps: int, cfg: float,
              log: Log = print) -> dict:
     """Inversion + replay with no edit, per method; the VAE's reconstruction as the floor."""
-    from ..diffusion.inversion import invert
-    from ..editing.real import decode, encode, reconstruct
-    from ..motion.real import load_real_motion
-    from .edit_metrics import mpjpe
 
     per_clip = []
     for name in names:
@@ -111,13 +114,6 @@ def _judge(clf, variants: dict[str, np.ndarray]) -> dict[str, dict]:
 
 def _edit_task(pipe, clf, root: Path, names: list[str], methods: Sequence[str], steps: int, cfg: float,
                strengths: Sequence[float], seed: int, task: str, log: Log, uncorrected: bool = False) -> dict:
-    from ..diffusion.inversion import invert
-    from ..editing.real import decode, edit_inverted, encode
-    from ..motion.real import load_real_motion
-    from .edit_metrics import mpjpe, root_path_deviation, root_path_error
-    from .sdedit import sdedit
-    from ..motion.representation import features_to_joints, mirror_features
-    from .physics import physical_checks
 
     per_clip = []
     for name in names:
@@ -198,8 +194,6 @@ def run_real_edit_bench(pipe, data: str | Path, classifier: str | Path, out: str
                         uncorrected: bool = False, log: Log = print) -> dict:
     """Run the three parts and write results.json and report.md into `out`. uncorrected=True
     also runs each edit without the per-step corrections."""
-    from ..diffusion.inversion import METHODS
-    from .classifiers import load_classifier
 
     root = Path(data)
     if not (root / "new_joint_vecs").is_dir():
@@ -237,7 +231,6 @@ def _pm(s: dict, k: str, scale: float = 1.0, fmt: str = "{:.2f}") -> str:
 
 
 def write_real_edit_report(results: dict, out: str | Path) -> Path:
-    from ..files import atomic_write_text
     out = Path(out)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2, default=float))
     c = results["config"]
