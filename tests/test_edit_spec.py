@@ -75,6 +75,11 @@ def test_from_a_dict_and_from_keyword_arguments():
         EditSpec.from_arguments(spec, mode="swap", target=None, tau=0.5, reweight=None, mirror=None, self_inject=0.2)
 
 
+def test_the_package_exports_it():
+    import salad
+    assert salad.EditSpec is EditSpec
+
+
 def test_pipeline_edit_takes_a_spec_or_its_keywords(pipe):
     spec = EditSpec(target="a person runs forward", tau=0.6, reweight={"runs": 1.5})
     by_spec = pipe.edit("a person walks forward", spec=spec, seed=1, seconds=1.2, steps=3)
