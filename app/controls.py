@@ -13,7 +13,7 @@ import numpy as np
 
 from salad.motion import skeleton as sk
 from salad.motion.control import (
-    ControlSignal, keyframe_signal, lower_body_signal, make_signal, preset_path, preset_polyline, read_mola_control,
+    ControlSignal, keyframe_signal, make_signal, preset_path, read_mola_control,
 )
 from salad.motion.representation import FPS
 
@@ -36,11 +36,6 @@ PRESETS = {                                 # value -> label; the shapes are sal
 }
 MAX_KEYFRAMES = 64
 NPY_MAGIC = b"\x93NUMPY"
-
-
-def preset_points(preset: str, length_m: float) -> np.ndarray:
-    """(N, 2) x, z corner points of a preset path whose length is `length_m` metres."""
-    return preset_polyline(preset, length_m)
 
 
 def preset_signal(preset: str, frames: int, speed_mps: float, fps: float) -> ControlSignal:
@@ -202,11 +197,6 @@ def parse_keyframes(spec, frames: int) -> tuple[int, ...]:
 def inbetween_signal(joints: np.ndarray, keyframes: tuple[int, ...]) -> ControlSignal:
     """Whole-body poses of `joints` kept at `keyframes`, everything between free."""
     return keyframe_signal({f: joints[f] for f in keyframes}, len(joints))
-
-
-def upper_body_signal(joints: np.ndarray) -> ControlSignal:
-    """The lower body (pelvis and legs) of `joints` kept, the upper body free."""
-    return lower_body_signal(joints)
 
 
 # ------------------------------------------------------------------ drawing

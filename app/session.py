@@ -32,7 +32,7 @@ class Result:
     kind: str = "generate"
     source: Any = None                  # edit: the source Motion
     signal: Any = None                  # control: the ControlSignal
-    given: Any = None                   # real: the input (app.real_edit.RealInput)
+    given: Any = None                   # real: the input (app.real_input.RealInput)
     params: dict[str, Any] = field(default_factory=dict)   # real: salad's EditResult.params
     id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
 

@@ -5,6 +5,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+# the panels read the edit's defaults and limits here
+from salad.editing.spec import DEFAULT_SELF_INJECT, DEFAULT_TAU, MAX_REWEIGHT, MIRROR_PARTS  # noqa: F401
+
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 7860
 
@@ -18,12 +21,8 @@ MAX_SEED = 2**31 - 1
 DEFAULT_SECONDS = 4.0
 SECONDS_STEP = 0.2          # frames come in multiples of 4 at 20 fps
 
-# Editing (SALAD's attention modulation).
-DEFAULT_TAU = {"swap": 0.8, "refine": 0.0}   # share of the steps during which the source's maps lead
-MAX_REWEIGHT = 3.0          # |s| beyond 3 turns the motion into noise
+# Editing (SALAD's attention modulation); its defaults and limits are salad.editing.spec's.
 DEFAULT_REWEIGHT = 2.0
-DEFAULT_SELF_INJECT = 0.2
-MIRROR_PARTS = ("lower", "upper", "all")
 
 # Guided control (MoLA's training-free guidance).
 MAX_STRENGTH = 20.0

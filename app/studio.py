@@ -22,7 +22,7 @@ from .validation import AttentionRequest, ControlRequest, EditRequest, GenerateR
 from .workspace import Workspace
 from salad.files import atomic_write
 
-Progress = Callable[[str, int, int], None]   # (stage, done, total)
+StageProgress = Callable[[str, int, int], None]   # (stage, done, total)
 # Words an edit may add or swap that carry no motion of their own ("a" -> "an" before an adjective).
 FUNCTION_WORDS = frozenset("a an the their his her its and or with to of in on at while as".split())
 # Motion files (NPY, NPZ, BVH) are written here while the video renders: the video is what
@@ -31,7 +31,7 @@ file_writer = ThreadPoolExecutor(max_workers=2, thread_name_prefix="salad-save")
 
 
 def quiet(stage: str, done: int, total: int) -> None:
-    """A Progress that reports nowhere."""
+    """A StageProgress that reports nowhere."""
 
 
 def slug(text: str, limit: int = 40) -> str:
@@ -94,7 +94,7 @@ class Studio:
         return Session(self.workspace.session_key(session_hash), folder)
 
     # ------------------------------------------------------------ generation
-    def sample_locked(self, steps: int, progress: Progress, run: Callable):
+    def sample_locked(self, steps: int, progress: StageProgress, run: Callable):
         """run(report) under the model lock -> (its value, {"wait_s", "sample_s"})."""
         t0 = time.perf_counter()
         if self._model_lock.locked():
@@ -105,13 +105,13 @@ class Studio:
         return value, {"wait_s": t1 - t0, "sample_s": time.perf_counter() - t1}
 
     @staticmethod
-    def rendered(progress: Progress, render: Callable) -> tuple[Path, float]:
+    def rendered(progress: StageProgress, render: Callable) -> tuple[Path, float]:
         """render(report) reporting as "rendering" -> (its path, seconds)."""
         t0 = time.perf_counter()
         path = render(lambda i, n: progress("rendering", i, n))
         return path, time.perf_counter() - t0
 
-    def generate(self, session: Session, req: GenerateRequest, progress: Progress = quiet) -> Result:
+    def generate(self, session: Session, req: GenerateRequest, progress: StageProgress = quiet) -> Result:
         """Sample, save (NPY joints and features, NPZ, BVH) and render (MP4) one motion; it becomes
         the session's current one. An identical earlier request of the session is answered from its files."""
         from salad.render import render_video
@@ -176,7 +176,7 @@ class Studio:
 
         return result.cached(("files", req.layers, req.steps), make)
 
-    def word_video(self, result: Result, req: AttentionRequest, progress: Progress = quiet) -> Path:
+    def word_video(self, result: Result, req: AttentionRequest, progress: StageProgress = quiet) -> Path:
         """The skeleton video with joints tinted by one word's attention."""
         from salad.render import render_video
 
@@ -192,7 +192,7 @@ class Studio:
         return result.cached(("video", req.word, req.layers, req.steps), make)
 
     # ------------------------------------------------------------ editing
-    def edit(self, session: Session, req: EditRequest, progress: Progress = quiet) -> Result:
+    def edit(self, session: Session, req: EditRequest, progress: StageProgress = quiet) -> Result:
         """Run one edit (source and edited branches in one batched sampling), save both motions
         and render them side by side; it becomes the session's latest edit."""
         from salad.render import render_side_by_side
@@ -202,9 +202,8 @@ class Studio:
             return reused
         folder = session.new_folder()
         res, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.edit(
-            req.source, req.target, mode=req.mode, seed=req.seed, seconds=req.seconds, steps=req.steps, cfg=req.cfg,
-            sampler=req.sampler, tau=req.tau, reweight=dict(req.reweight) or None, mirror=req.mirror,
-            self_inject=req.self_inject, progress=report, foot_lock=req.foot_lock))
+            req.source, seed=req.seed, seconds=req.seconds, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
+            progress=report, foot_lock=req.foot_lock, spec=req.spec))
         stem = file_stem(req)
         saved = [file_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
                  file_writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
@@ -267,7 +266,7 @@ class Studio:
 
         return result.cached(("edit heatmaps", word), make)
 
-    def edit_downloads(self, result: Result, progress: Progress = quiet) -> list[Path]:
+    def edit_downloads(self, result: Result, progress: StageProgress = quiet) -> list[Path]:
         """Every file of an edit: the side-by-side MP4, the edited motion's own MP4, BVH, NPY
         joints and features, NPZ per motion, and both attention maps as NPZ and PNG."""
         from salad.render import attention_png, render_video
@@ -291,7 +290,7 @@ class Studio:
         return result.cached(("edit downloads",), make)
 
     # ------------------------------------------------------------ guided control
-    def control(self, session: Session, req: ControlRequest, signal, progress: Progress = quiet) -> Result:
+    def control(self, session: Session, req: ControlRequest, signal, progress: StageProgress = quiet) -> Result:
         """Sample a motion guided by `signal`, save it with its signal, and render it with the
         targets (and a path on the floor) drawn; it becomes the session's latest control result."""
         from salad.render import render_video

@@ -7,19 +7,18 @@ import math
 from dataclasses import dataclass
 from numbers import Real
 from pathlib import Path
-from typing import TYPE_CHECKING
 
+from salad.motion.control import lower_body_signal
 from salad.motion.representation import FPS
-from salad.editing.build import EDIT_MODES
+from salad.editing.spec import EDIT_MODES, EditSpec
 from salad.pipeline import MIN_AUTO_FRAMES
 
+from . import controls
+from .real_input import RealInput, read_upload, upload_path
 from .settings import (
     DEFAULT_SELF_INJECT, DEFAULT_TAU, MAX_CFG, MAX_PATH_SPEED, MAX_REWEIGHT, MAX_SEED, MAX_STEPS, MAX_STRENGTH,
     MIRROR_PARTS,
 )
-
-if TYPE_CHECKING:
-    from .real_edit import RealInput
 
 
 @dataclass(frozen=True)
@@ -152,8 +151,17 @@ def parse_attention(maps, word, layers, first_step, last_step) -> AttentionReque
 
 # ---------------------------------------------------------------- editing
 
+class _Edit:
+    """The edit settings a request carries, as the EditSpec the pipeline takes."""
+
+    @property
+    def spec(self) -> EditSpec:
+        return EditSpec(mode=self.mode, target=self.target, tau=self.tau, reweight=self.reweight, mirror=self.mirror,
+                        self_inject=self.self_inject)
+
+
 @dataclass(frozen=True)
-class EditRequest:
+class EditRequest(_Edit):
     source: str
     target: str | None              # swap / refine: the edited prompt; None: the source prompt is kept
     mode: str                       # swap | refine | reweight | mirror
@@ -214,13 +222,13 @@ def parse_edit(pipe, source, mode, target, tau, reweight_word, reweight_scale, m
     elif mode == "reweight":
         raise ValueError(f"choose the word to re-weight, one of: {', '.join(words)}")
     half = None if mirror in (None, "", "none") else _choice("mirror", mirror, MIRROR_PARTS)
-    if mode == "mirror" and half is None:
-        half = "all"            # as the pipeline does: mirroring without a body half mirrors both
+    spec = EditSpec(mode=mode, target=tgt, tau=t, reweight=weights, mirror=half,
+                    self_inject=_number("self-attention injection", self_inject, 0.0, 1.0))
     duration = _duration(pipe, auto_length, seconds)
     seed, n_steps, scale, sampler = _sampling(pipe, seed, steps, cfg, sampler)
-    return EditRequest(source=src, target=tgt, mode=mode, tau=t, reweight=weights, mirror=half,
-                       self_inject=_number("self-attention injection", self_inject, 0.0, 1.0), seconds=duration,
-                       seed=seed, steps=n_steps, cfg=scale, sampler=sampler, foot_lock=_flag("foot lock", foot_lock))
+    return EditRequest(source=src, target=tgt, mode=mode, tau=t, reweight=spec.reweight, mirror=spec.mirror,
+                       self_inject=spec.self_inject, seconds=duration, seed=seed, steps=n_steps, cfg=scale,
+                       sampler=sampler, foot_lock=_flag("foot lock", foot_lock))
 
 
 # ---------------------------------------------------------------- guided control
@@ -243,8 +251,6 @@ def control_signal(pipe, task, preset, seconds, speed, upload, example, keyframe
     """Build the Control panel's signal -> (ControlSignal, detail, base id). `base` is the
     session's last generated Result (in-betweening and upper-body edits start from it);
     uploads must lie under `upload_root`; examples are file names in `examples_dir`."""
-    from . import controls
-
     task = _choice("task", task, tuple(controls.TASKS))
     span = (MIN_AUTO_FRAMES, pipe.canvas_frames)
     if task == "path":
@@ -273,7 +279,7 @@ def control_signal(pipe, task, preset, seconds, speed, upload, example, keyframe
     if task == "inbetween":
         kept = controls.parse_keyframes(keyframes, len(joints))
         return controls.inbetween_signal(joints, kept), kept, base.id
-    return controls.upper_body_signal(joints), (), base.id
+    return lower_body_signal(joints), (), base.id   # an upper-body edit keeps the lower body
 
 
 def parse_control(pipe, prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed,
@@ -292,7 +298,7 @@ def parse_control(pipe, prompt, task, preset, seconds, speed, upload, example, k
 # ---------------------------------------------------------------- editing real motions
 
 @dataclass(frozen=True)
-class RealEditRequest:
+class RealEditRequest(_Edit):
     input_name: str                 # the uploaded file's name or the test clip's id
     input_kind: str                 # bvh | joints | features | clip
     input_digest: str               # sha256 of the uploaded file, or the clip's id: equal inputs, equal requests
@@ -303,7 +309,7 @@ class RealEditRequest:
     reweight: tuple[tuple[str, float], ...]
     mirror: str | None
     self_inject: float
-    inversion: str                  # a method of salad.editing.inversion
+    inversion: str                  # a method of salad.diffusion.inversion
     steps: int
     cfg: float
     foot_lock: bool = True
@@ -311,20 +317,18 @@ class RealEditRequest:
 
 def parse_real_edit(pipe, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion,
                     steps, cfg, foot_lock=True, *, upload_root: Path, clips=None) -> tuple[RealEditRequest, RealInput]:
-    """Validate the Real motion panel -> (RealEditRequest, app.real_edit.RealInput). The motion is
-    an upload (under `upload_root`) or a test clip of `clips` (an app.real_edit.ClipLibrary),
+    """Validate the Real motion panel -> (RealEditRequest, app.real_input.RealInput). The motion is
+    an upload (under `upload_root`) or a test clip of `clips` (an app.real_input.ClipLibrary),
     never both; the edit is checked as the Edit panel's, with the edit's default τ and
     self-attention injection, and sampled with DDIM as the inversion requires."""
-    from salad.editing.inversion import METHODS
+    from salad.diffusion.inversion import METHODS
 
-    from . import real_edit
-
-    up = real_edit.upload_path(upload, upload_root)
+    up = upload_path(upload, upload_root)
     picked = clip not in (None, "", "none")
     if up is not None and picked:
         raise ValueError("give either an uploaded motion or a test clip, not both")
     if up is not None:
-        motion, digest = real_edit.read_upload(up.path, up.name), up.digest
+        motion, digest = read_upload(up.path, up.name), up.digest
     elif picked:
         if clips is None:
             raise ValueError("no test clips are offered: start the studio with --clips DIR (a dataset build)")

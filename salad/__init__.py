@@ -1,6 +1,8 @@
 """salad: skeleton-aware latent diffusion for text-driven motion generation and editing."""
 from __future__ import annotations
 
+from .editing.spec import EditSpec
+
 __version__ = "0.1.0"
 
 
@@ -10,4 +12,4 @@ def load_pipeline(*args, **kwargs):
     return _load(*args, **kwargs)
 
 
-__all__ = ["load_pipeline", "__version__"]
+__all__ = ["EditSpec", "load_pipeline", "__version__"]

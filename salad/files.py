@@ -7,6 +7,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator
 
+# Relative paths in configs and checkpoint metadata (a VAE's training data, say) are read against the checkout.
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
 # mkstemp creates files 0600; outputs should get the permissions any new file of this process gets
 _UMASK = os.umask(0)
 os.umask(_UMASK)

@@ -9,16 +9,20 @@ import math
 import os
 from contextlib import nullcontext
 from pathlib import Path
-from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import torch
 
 from .checkpoint import CheckpointError
+from .files import REPO_ROOT
+from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, default_repeats, guided_sample,
+                                 position_loss)
 from .diffusion.sampling import sample
 from .diffusion.schedule import SAMPLERS, DiffusionConfig, NoiseSchedule
-from .editing.build import build_edit, edit_arguments
+from .editing.build import build_edit, step_follower
+from .editing.real import edit_real
+from .editing.spec import DEFAULT_SELF_INJECT, EditResult, EditSpec
+from .editing.store import AttentionStore
 from .config import from_dict
 from .models.denoiser import Denoiser
 from .models.io import load_denoiser, load_vae, vae_latent_checksums
@@ -26,17 +30,16 @@ from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
 from .models.vocabulary import PromptCheck
 from .precision import bf16_supported
+from .progress import Progress
 from .motion.cleanup import clean_motion
+from .motion.control import control_errors, make_signal
 from .motion.motion import Motion
-from .motion.representation import FPS, Normalizer, features_to_joints
+from .motion.representation import FPS, MIN_AUTO_FRAMES, Normalizer, features_to_joints
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 EMBEDDED_MODEL = REPO_ROOT / "assets" / "model"
 MAX_PROMPT_CHARS = 300
 ACTIVATION_THRESHOLD = 0.5
-MIN_AUTO_FRAMES = 16
 
-Progress = Callable[[int, int], None]
 
 
 class Pipeline:
@@ -154,17 +157,11 @@ class Pipeline:
         steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
         canvas = frames or self.canvas_frames
         text = self.encode_text([""] * batch + [prompt] * batch)
-        store = None
-        if return_attention:
-            from .editing.store import AttentionStore
-            store = AttentionStore(text, rows=slice(batch, 2 * batch), frames=canvas)
-            self.denoiser.set_controller(store)
-        try:
-            on_step = (lambda i, n, x: progress(i, n)) if progress else None
+        store = AttentionStore(text, rows=slice(batch, 2 * batch), frames=canvas) if return_attention else None
+        on_step = (lambda i, n, x: progress(i, n)) if progress else None
+        with self.denoiser.controlled(store):
             z = sample(self.model_fn(text, auto=frames is None), self.noise(batch, canvas, seed), self.schedule,
                        sampler=sampler, steps=steps, cfg_scale=cfg, on_step=on_step)
-        finally:
-            self.denoiser.set_controller(None)
         motions = self.decode(z, frames, [prompt] * batch, seed, foot_lock)
         if store is not None:
             for b, m in enumerate(motions):
@@ -196,7 +193,8 @@ class Pipeline:
 
     # ------------------------------------------------------------ guided control
     def control(self, prompt: str, targets=None, mask=None, seed: int = 0, strength: float = 1.0, steps: int = 50,
-                cfg: float = 7.5, repeats=None, signal=None, progress: Progress | None = None, edit: dict | None = None,
+                cfg: float = 7.5, repeats=None, signal=None, progress: Progress | None = None,
+                edit: EditSpec | dict | None = None,
                 gradient_steps: int | None = None, refine_steps: int | None = None,
                 foot_lock: bool = True) -> Motion | EditResult:
         """Text -> motion that also meets joint position targets (MoLA's training-free guidance).
@@ -208,17 +206,12 @@ class Pipeline:
         gradient_steps the guidance steps per network evaluation and refine_steps those
         on the final latent (defaults in salad.diffusion.guidance).
 
-        edit runs an attention edit during guided sampling, with Pipeline.edit's arguments
-        as keys (target = its target_prompt): {"mode": "mirror", "mirror": "upper"} or
-        {"target": "a person runs forward", "mode": "swap", "tau": 0.8}. The source and the
+        edit runs an attention edit during guided sampling: an EditSpec, such as
+        EditSpec(mode="mirror", mirror="upper") or EditSpec(target="a person runs forward"), or a
+        dict with its fields as keys ({"mode": "mirror", "mirror": "upper"}). The source and the
         edited branch start from the same noise, run in one batch and both follow the
         targets; an EditResult with both motions is returned instead of a Motion.
         """
-        from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, default_repeats, guided_sample,
-                                         position_loss)
-        from .editing.build import step_follower
-        from .motion.control import control_errors, make_signal
-
         prompt = self.check_prompt(prompt)
         sig = signal if signal is not None else make_signal(targets, mask)
         frames = (sig.frames // 4) * 4
@@ -242,18 +235,13 @@ class Pipeline:
         g = torch.Generator().manual_seed(int(seed) + 1)
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
         noise = self.noise(1, frames, seed).repeat(len(prompts), 1, 1, 1)     # one z_T for both edit branches
-        if plan is not None:
-            self.denoiser.set_controller(plan.controller)
-        try:
+        with self.denoiser.controlled(None if plan is None else plan.controller):
             z = guided_sample(self.model_fn(text, auto=False), noise, self.schedule, loss, steps=steps, cfg_scale=cfg,
                               strength=strength, repeats=default_repeats if repeats is None else repeats,
                               gradient_steps=DEFAULT_GRADIENT_STEPS if gradient_steps is None else gradient_steps,
                               refine_steps=DEFAULT_REFINE_STEPS if refine_steps is None else refine_steps,
                               generator=g, shared_noise=plan is not None,
                               before_model=None if plan is None else step_follower(plan.controller), on_step=on_step)
-        finally:
-            if plan is not None:
-                self.denoiser.set_controller(None)
         motions = self.decode(z, frames, prompts, seed, foot_lock)
         if not all(np.isfinite(m.joints).all() for m in motions):
             raise ValueError(f"guided sampling diverged (strength {strength}, {steps} steps): "
@@ -269,40 +257,24 @@ class Pipeline:
         params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler="ddim", strength=strength)
         return EditResult(source, edited, source.attention, edited.attention, params)
 
-    def _control_edit(self, prompt: str, edit: dict, steps: int, frames: int):
+    def _control_edit(self, prompt: str, edit: EditSpec | dict, steps: int, frames: int):
         """Encoded text, edit plan and the two branch prompts for Pipeline.control(edit=...)."""
-        from .editing.build import EDIT_KEYS
-
-        if not isinstance(edit, dict):
-            raise ValueError(f"edit must be a dict such as {{'mode': 'mirror', 'mirror': 'upper'}}, "
-                             f"got {type(edit).__name__}")
-        unknown = sorted(set(edit) - set(EDIT_KEYS))
-        if unknown:
-            raise ValueError(f"unknown edit option(s) {', '.join(map(repr, unknown))}; use {', '.join(EDIT_KEYS)}")
-        target = edit.get("target")
-        mode = edit.get("mode") or ("swap" if target is not None else "mirror" if edit.get("mirror") else
-                                    "reweight" if edit.get("reweight") else None)
-        if mode is None:
-            raise ValueError("edit needs a mode, a target prompt, a mirror part or re-weighted words")
-        prompt, target, mirror = self.check_edit(prompt, target, mode, edit.get("reweight"), edit.get("mirror"))
+        spec = EditSpec.of(edit)
+        prompt, target = self.check_edit(prompt, spec)
         text = self.encode_text(["", "", prompt, target])
-        plan = build_edit(text, steps, frames, mode, prompt, target, tau=edit.get("tau"), reweight=edit.get("reweight"),
-                          mirror=mirror, self_inject=edit.get("self_inject", 0.2))
-        return text, plan, [prompt, target]
+        return text, build_edit(text, steps, frames, spec, prompt, target), [prompt, target]
 
     # ------------------------------------------------------------ editing
-    def check_edit(self, source_prompt: str, target_prompt: str | None, mode: str, reweight: dict | None,
-                   mirror: str | None) -> tuple[str, str, str | None]:
-        """Cleaned source and target prompts and the mirrored part of an edit request, or a clear error."""
+    def check_edit(self, source_prompt: str, spec: EditSpec) -> tuple[str, str]:
+        """The cleaned source and edited prompts of an edit, or a clear error."""
         source_prompt = self.check_prompt(source_prompt)
-        target_prompt = None if target_prompt is None else self.check_prompt(target_prompt)
-        target_prompt, mirror = edit_arguments(mode, source_prompt, target_prompt, reweight, mirror)
-        return source_prompt, target_prompt, mirror
+        return source_prompt, self.check_prompt(spec.target_prompt(source_prompt))
 
     def edit(self, source_prompt: str, target_prompt: str | None = None, mode: str = "swap", seed: int = 0,
              seconds: float | str | None = None, steps: int = 50, cfg: float = 7.5, sampler: str = "ddim",
              tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
-             self_inject: float = 0.2, progress: Progress | None = None, foot_lock: bool = True) -> EditResult:
+             self_inject: float = DEFAULT_SELF_INJECT, progress: Progress | None = None, foot_lock: bool = True,
+             spec: EditSpec | None = None) -> EditResult:
         """Zero-shot edit by cross-attention modulation (SALAD Algorithm 1).
 
         mode: "swap" (target_prompt replaces words; the source's maps lead while the
@@ -312,24 +284,24 @@ class Pipeline:
         "lower" | "upper" | "all"). reweight and mirror also compose with swap/refine.
         Source and edited branches, with their CFG rows, run in one batched forward
         from the same noise. Returns both motions and both attention maps.
+        The edit may instead come as spec=EditSpec(...) (salad.editing.spec), without those keywords.
         """
-        source_prompt, target_prompt, mirror = self.check_edit(source_prompt, target_prompt, mode, reweight, mirror)
+        spec = EditSpec.from_arguments(spec, mode=mode, target=target_prompt, tau=tau, reweight=reweight,
+                                       mirror=mirror, self_inject=self_inject)
+        source_prompt, target_prompt = self.check_edit(source_prompt, spec)
         frames = self.frames_for(seconds)
         steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
         canvas = frames or self.canvas_frames
 
         text = self.encode_text(["", "", source_prompt, target_prompt])
-        plan = build_edit(text, steps, canvas, mode, source_prompt, target_prompt, tau, reweight, mirror, self_inject)
+        plan = build_edit(text, steps, canvas, spec, source_prompt, target_prompt)
         edit, store = plan.controller, plan.store
 
         noise = self.noise(1, canvas, seed).repeat(2, 1, 1, 1)        # the same z_T for both branches
-        self.denoiser.set_controller(edit)
-        try:
-            on_step = (lambda i, n, x: progress(i, n)) if progress else None
+        on_step = (lambda i, n, x: progress(i, n)) if progress else None
+        with self.denoiser.controlled(edit):
             z = sample(self.model_fn(text, auto=frames is None), noise, self.schedule, sampler=sampler,
                        steps=steps, cfg_scale=cfg, on_step=on_step)
-        finally:
-            self.denoiser.set_controller(None)
         source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock)
         source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
         params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler=sampler)
@@ -338,21 +310,11 @@ class Pipeline:
     def edit_real(self, motion, source_prompt: str, target_prompt: str | None = None, mode: str = "swap",
                   **params) -> EditResult:
         """Edit a real motion (BVH path, (T,22,3) joints or (T,263) features) by text: VAE encoding,
-        inversion (negative-prompt by default), then the attention edit. `.source` is the
-        reconstruction. See salad.editing.real.edit_real for the parameters."""
-        from .editing.real import edit_real
+        inversion (negative-prompt by default), then the attention edit (keywords as Pipeline.edit, or
+        spec=EditSpec(...)). `.source` is the reconstruction. See salad.editing.real.edit_real for the
+        parameters."""
         return edit_real(self, motion, source_prompt, target_prompt, mode, **params)
 
-
-
-
-@dataclass
-class EditResult:
-    source: Motion
-    edited: Motion
-    source_attention: object = None
-    edited_attention: object = None
-    params: dict = field(default_factory=dict)
 
 
 def end_of_motion(activation: np.ndarray, threshold: float = ACTIVATION_THRESHOLD) -> int:

@@ -10,13 +10,10 @@ from gradio_client import handle_file
 from gradio_client.exceptions import AppError
 
 from salad.motion import skeleton as sk
-from salad.motion.control import make_signal
+from salad.motion.control import lower_body_signal, make_signal, preset_polyline
 
 from app.compare import motion_difference
-from app.controls import (
-    PRESETS, display_name, lower_body_signal, parse_keyframes, pelvis_path, preset_points, preset_signal,
-    upload_file,
-)
+from app.controls import PRESETS, display_name, parse_keyframes, pelvis_path, preset_signal, upload_file
 from app.figures import control_top_view
 from app.session import Result, Session
 from app.settings import MAX_UPLOAD_BYTES, Settings
@@ -295,7 +292,7 @@ def test_every_new_event_has_an_api_name(server):
 
 @pytest.mark.parametrize("preset", list(PRESETS))
 def test_preset_paths_start_forward_and_have_the_asked_length(preset):
-    p = preset_points(preset, 3.0)
+    p = preset_polyline(preset, 3.0)
     assert np.allclose(p[0], 0) and np.linalg.norm(np.diff(p, axis=0), axis=1).sum() == pytest.approx(3.0)
     heading = p[1] - p[0]
     assert heading[1] > abs(heading[0]), "leaves the origin heading forward (+z)"

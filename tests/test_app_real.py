@@ -9,12 +9,12 @@ import pytest
 from gradio_client import handle_file
 from gradio_client.exceptions import AppError
 
-from salad.eval.real_edit_bench import read_clip
+from salad.data.dataset import read_clip
 from salad.motion import representation as rep
 from salad.motion.cleanup import clean_motion
 from salad.motion.bvh import load_bvh, save_bvh
 
-from app.real_edit import ClipLibrary, read_upload, upload_path
+from app.real_input import ClipLibrary, read_upload, upload_path
 from app.settings import MAX_UPLOAD_BYTES, Settings
 from app.ui.layout import API_NAMES
 from conftest import serve_studio, synthetic_walk

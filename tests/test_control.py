@@ -106,13 +106,12 @@ def test_preset_path_shapes_and_errors():
 
 
 def test_studio_presets_are_the_library_presets():
-    from app.controls import PRESETS, preset_points as studio_points, preset_signal
+    from app.controls import PRESETS, preset_signal
     from salad.motion.control import PATH_PRESETS, preset_name, preset_polyline
 
     assert sorted(map(preset_name, PRESETS)) == sorted(PATH_PRESETS)
     for name in PRESETS:
-        poly = studio_points(name, 3.0)
-        np.testing.assert_allclose(poly, preset_polyline(name, 3.0))
+        poly = preset_polyline(name, 3.0)
         assert np.linalg.norm(np.diff(poly, axis=0), axis=1).sum() == pytest.approx(3.0)
         np.testing.assert_allclose(preset_signal(name, 40, 1.2, FPS).targets, preset_path(name, 40, 1.2).targets)
     # at another frame rate the path keeps its speed in metres per second
@@ -333,14 +332,14 @@ def test_edit_controller_counts_denoising_steps_under_time_travel(pipe, monkeypa
 # ---------------------------------------------------------------- the `salad control` command
 
 def _parser():
-    from salad.control_cli import add_parser
+    from salad.cli.control import add_parser
     p = argparse.ArgumentParser(prog="salad")
     add_parser(p.add_subparsers(dest="command", required=True))
     return p
 
 
 def test_cli_argument_errors(tmp_path, capsys):
-    from salad.control_cli import signal_from_args
+    from salad.cli.control import signal_from_args
     from salad.motion.motion import check_output_paths
     p = _parser()
     with pytest.raises(SystemExit):

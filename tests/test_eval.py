@@ -14,8 +14,8 @@ from salad.eval.evaluator import Evaluator, load_evaluator
 from salad.data.labels import side_of
 from salad.eval.physics import batch_physical_checks, physical_checks, physical_checks_features
 from salad.eval.t2m import evaluate_t2m, ground_truth_generator, write_report
-from salad.eval.train_classifier import ClassifierTask, ClassifierTrainConfig, train_classifier
-from salad.eval.train_evaluator import EvaluatorTask, EvaluatorTrainConfig, load_config
+from salad.training.classifier_task import ClassifierTask, ClassifierTrainConfig, train_classifier
+from salad.training.evaluator_task import EvaluatorTask, EvaluatorTrainConfig, load_config
 from salad.motion import features_to_joints, joints_to_features, mirror_joints
 from salad.motion.representation import feature_statistics
 from salad.training.loop import Trainer

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from salad.eval import EMBEDDED_EVALUATOR
-from salad.eval.control_bench import (add_parser, control_error_metrics, controlled_frames, make_cases,
+from salad.cli.eval import add_eval_control as add_parser
+from salad.eval.control_bench import (control_error_metrics, controlled_frames, make_cases,
                                       markdown_report, parse_density, parse_joints)
 from salad.motion.control import control_errors
 from salad.motion.representation import features_to_joints

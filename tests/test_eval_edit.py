@@ -6,7 +6,9 @@ import pytest
 
 from conftest import BANDAI_SUBSET, synthetic_walk
 from salad.eval import EMBEDDED_CLASSIFIER
-from salad.eval.edit_bench import add_parser, cmd_eval_edit, judge, regenerate, run_edit_benchmark
+from salad.cli.eval import add_eval_edit as add_parser
+from salad.cli.eval import cmd_eval_edit
+from salad.eval.edit_bench import judge, regenerate, run_edit_benchmark
 from salad.eval.edit_metrics import (body_frame, dominant_wrist, is_monotonic, other_side, pose_distance,
                                      root_trajectory_distance, side_flipped, spearman, timing_correlation)
 from salad.eval.edit_suite import DEFAULT_SCALES, default_suite

@@ -9,9 +9,11 @@ import torch
 
 from conftest import synthetic_walk
 from salad.diffusion.schedule import NoiseSchedule
-from salad.editing.inversion import METHODS, ddim_grid, ddim_step, invert, renoise, x0_eps
-from salad.editing.real import (decode, edit_inverted, edit_real, encode, load_real_motion, mpjpe, reconstruct,
-                                root_path_deviation, root_path_error, sdedit)
+from salad.diffusion.inversion import METHODS, ddim_grid, ddim_step, invert, noise_estimate, renoise
+from salad.editing.real import decode, edit_inverted, edit_real, encode, reconstruct
+from salad.eval.edit_metrics import mpjpe, root_path_deviation, root_path_error
+from salad.eval.sdedit import sdedit
+from salad.motion.real import load_real_motion
 from salad.motion import representation as rep
 from salad.pipeline import load_pipeline
 
@@ -47,11 +49,11 @@ def test_ddim_step_is_diffusers_step_and_renoise_undoes_it():
         for i, t in enumerate(sched.timesteps):
             out = torch.randn(x.shape, generator=g)
             ref = sched.step(out, t, x).prev_sample
-            mine = ddim_step(x, out, float(grid.alpha[i]), float(grid.alpha_next[i]), "v_prediction")
+            mine = ddim_step(schedule, x, out, grid.timesteps[i], grid.targets[i])
             torch.testing.assert_close(mine, ref, atol=2e-5, rtol=1e-4)
             # with the step's own noise estimate, renoise goes back exactly
-            _, eps = x0_eps(x, out, float(grid.alpha[i]), "v_prediction")
-            back = renoise(mine, eps, float(grid.alpha[i]), float(grid.alpha_next[i]))
+            eps = noise_estimate(schedule, x, out, grid.timesteps[i])
+            back = renoise(schedule, mine, eps, grid.timesteps[i], grid.targets[i])
             torch.testing.assert_close(back, x, atol=1e-4, rtol=1e-4)
             x = mine
 
@@ -197,7 +199,7 @@ def _cli(add_parser, argv):
 
 
 def test_edit_real_command(tiny_model, tmp_path, capsys):
-    from salad.editing.real import add_parser
+    from salad.cli.edit import add_edit_real as add_parser
     inp = tmp_path / "in.npy"
     np.save(inp, synthetic_walk(41, seed=2))
     out_bvh, out_npy, rec = tmp_path / "out.bvh", tmp_path / "out.npy", tmp_path / "rec.npz"
@@ -238,7 +240,7 @@ def test_eval_real_edit_end_to_end(tiny_model, tmp_path):
     from salad.eval.classifiers import ClassifierConfig, MotionClassifier, save_classifier
     from salad.data.labels import SIDES
     from salad.eval.networks import MotionEncoderConfig
-    from salad.eval.real_edit_bench import add_parser
+    from salad.cli.eval import add_eval_real_edit as add_parser
 
     data = _labelled_dataset(tmp_path / "data")
     torch.manual_seed(0)

@@ -6,7 +6,8 @@ import pytest
 
 from salad.data.dataset import MotionDataset
 from salad.data.labels import MotionLabels
-from salad.eval.length_dist import (add_parser, compare_lengths, earth_movers, evaluate_lengths, generate_auto_length,
+from salad.cli.eval import add_eval_length as add_parser
+from salad.eval.length_dist import (compare_lengths, earth_movers, evaluate_lengths, generate_auto_length,
                                     js_divergence, length_bins, length_histogram, reachable_length)
 from salad.pipeline import load_pipeline
 

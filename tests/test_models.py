@@ -89,6 +89,38 @@ def test_controller_can_replace_maps():
     assert (changed - base).abs().max() > 1e-4
 
 
+def test_controlled_attaches_for_the_block_only_even_when_it_fails():
+    den = tiny_denoiser().eval()
+    z, t, text = torch.randn(1, 4, 7, 32), torch.tensor([500]), torch.randn(1, 3, 16)
+    calls = []
+
+    def count(call):
+        calls.append(call.kind)
+        return call.probs
+
+    with den.controlled(count):
+        den(z, t, text)
+    assert calls and all(a.controller is None for a in den.attentions())
+    with pytest.raises(RuntimeError, match="stop"):
+        with den.controlled(count):
+            raise RuntimeError("stop")
+    assert all(a.controller is None for a in den.attentions())
+
+
+def test_attention_store_counts_steps_with_the_shared_counter():
+    from salad.editing.store import AttentionStore, StepCounter
+    counter = StepCounter(4)
+    calls = [AttentionCall(kind, layer, torch.zeros(1), 1, 1, 1) for kind, layer in
+             (("temporal", 0), ("cross", 1), ("cross", 3), ("temporal", 0), ("cross", 1))]
+    for c in calls:
+        counter.see(c)
+    assert counter.step == 1 and counter.fraction == 0.25          # steps start at the first module
+    store = AttentionStore(text=None, rows=slice(0, 1), frames=4, layers=[99])
+    for c in calls:
+        store(c)
+    assert store.counter.step == 1                                    # the store sees cross-attention only
+
+
 def test_dropout_drops_p_keeps_the_expectation_and_follows_the_seed():
     from salad.models.dropout import Dropout, dropout
     x = torch.ones(400_000, dtype=torch.float32, requires_grad=True)

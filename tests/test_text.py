@@ -9,8 +9,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from salad.models.text import (TextFeatures, ensure_torchvision_importable, import_open_clip, load_text_encoder,
-                               split_words)
+from salad.models.text import TextFeatures, load_text_encoder, split_words
+from salad.models.torchvision_compat import ensure_torchvision_importable, import_open_clip
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_ARCH = "salad-test-tiny-clip"
@@ -312,7 +312,7 @@ def test_torchvision_workaround_only_when_needed():
         except RuntimeError as err:
             broken = "operator torchvision::nms does not exist" in str(err)
             assert broken, err
-        from salad.models.text import ensure_torchvision_importable, defined_torchvision_ops
+        from salad.models.torchvision_compat import ensure_torchvision_importable, defined_torchvision_ops
         added = ensure_torchvision_importable()
         assert bool(added) == broken, (added, broken)
         assert ensure_torchvision_importable() == []  # second call: nothing more to do
@@ -330,7 +330,7 @@ def test_torchvision_workaround_is_noop_when_import_works():
         lib = torch.library.Library("torchvision", "FRAGMENT")
         lib.define("nms(Tensor dets, Tensor scores, float iou_threshold) -> Tensor")
         lib.define("qnms(Tensor dets, Tensor scores, float iou_threshold) -> Tensor")
-        from salad.models.text import ensure_torchvision_importable, defined_torchvision_ops
+        from salad.models.torchvision_compat import ensure_torchvision_importable, defined_torchvision_ops
         assert ensure_torchvision_importable() == []
         assert defined_torchvision_ops() == []
         print("ok")

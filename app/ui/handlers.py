@@ -9,7 +9,7 @@ from collections import Counter
 
 import gradio as gr
 
-from .. import controls, real_edit
+from .. import controls, real_edit, real_input
 from ..figures import control_top_view, note_figure
 from ..session import Result, Session
 from ..settings import DEFAULT_TAU
@@ -68,7 +68,7 @@ def word_choices(words: list[str]) -> list[tuple[str, int]]:
 class Handlers:
     """The functions the page's events call; one instance per app."""
 
-    def __init__(self, studio: Studio, clips: "real_edit.ClipLibrary | None" = None):
+    def __init__(self, studio: Studio, clips: "real_input.ClipLibrary | None" = None):
         self.studio = studio
         self.clips = clips          # test clips offered in the Real motion tab
 

@@ -10,7 +10,7 @@ from ..session import Session
 from ..settings import Settings
 from ..studio import Studio
 from ..controls import list_examples
-from ..real_edit import ClipLibrary
+from ..real_input import ClipLibrary
 from .attention_panel import build_attention_panel
 from .control_panel import build_control_panel
 from .edit_panel import build_edit_panel

@@ -183,10 +183,6 @@ MIRRORED_CONTENT = {"walk-left": "walk-right", "walk-right": "walk-left",
                     "raise-up-left-hand": "raise-up-right-hand", "raise-up-right-hand": "raise-up-left-hand"}
 
 
-def mirrored_captions(captions: list[str]) -> list[str]:
-    return [swap_left_right(c) for c in captions]
-
-
 # A small part-of-speech lexicon for the template vocabulary, so caption lines carry
 # HumanML3D's `word/POS` token field without a tagger dependency.
 _POS = {

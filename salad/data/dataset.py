@@ -187,3 +187,12 @@ class WindowSampler:
             feats[b, :len(chunk)] = self.ds.normalizer.normalize(chunk)
             act[b, :len(chunk)] = 1.0
         return {"features": torch.from_numpy(feats), "activation": torch.from_numpy(act)}
+
+
+def read_clip(root: Path, name: str, max_frames: int) -> tuple[np.ndarray, str]:
+    """(features cut to at most max_frames, the clip's first caption)."""
+    f = np.load(root / "new_joint_vecs" / f"{name}.npy", allow_pickle=False)
+    caps = read_captions(root / "texts" / f"{name}.txt")
+    if not caps:
+        raise ValueError(f"{root}/texts/{name}.txt: no captions")
+    return f[:max_frames], caps[0].text

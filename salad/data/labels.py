@@ -5,6 +5,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from .captions import CONTENT_PHRASES, MIRRORED_CONTENT, STYLE_PHRASES
 
 CONTENTS: tuple[str, ...] = tuple(sorted(CONTENT_PHRASES))
@@ -70,3 +72,14 @@ def read_labels(root: str | Path) -> dict[str, MotionLabels]:
             raise ValueError(f"{path}: motion {name!r} has unknown style {style!r}")
         out[name] = MotionLabels(content, style, side_of(content, mirrored), mirrored, str(entry.get("split", "")))
     return out
+
+
+def pick_test_clips(labels: dict, n: int, content: str | None = None, style: str | None = None) -> list[str]:
+    """n test clips spread evenly over the sorted ids that match content/style."""
+    names = sorted(k for k, v in labels.items() if v.split == "test" and (content is None or v.content == content)
+                   and (style is None or v.style == style))
+    if not names:
+        raise ValueError(f"no test clips with content={content!r} style={style!r}")
+    if n >= len(names):
+        return names
+    return [names[int(i)] for i in np.linspace(0, len(names) - 1, n).round()]

@@ -49,6 +49,11 @@ class NoiseSchedule:
         sa, s1a = self._coef(t, x0)
         return sa * x0 + s1a * noise
 
+    def remove_noise(self, xt: torch.Tensor, noise: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The clean sample that add_noise turned into xt with `noise` (its inverse)."""
+        sa, s1a = self._coef(t, xt)
+        return (xt - s1a * noise) / sa
+
     def target(self, x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """What the model is trained to output."""
         p = self.config.prediction_type

@@ -19,6 +19,8 @@ import torch
 from ..models.attention import CROSS, AttentionCall
 from ..motion import skeleton as sk
 from .align import TokenAlignment
+from .spec import DEFAULT_SELF_INJECT, DEFAULT_TAU
+from .store import StepCounter
 
 
 @dataclass
@@ -38,29 +40,9 @@ def _expand(rows: slice, per_row: int) -> slice:
     return slice(rows.start * per_row, rows.stop * per_row)
 
 
-class StepCounter:
-    """Counts denoising steps: a step starts at every call of the first attention module."""
-
-    def __init__(self, total_steps: int):
-        self.total = total_steps
-        self.step = -1
-        self._first: tuple[str, int] | None = None
-
-    def see(self, call: AttentionCall) -> None:
-        key = (call.kind, call.layer)
-        if self._first is None:
-            self._first = key
-        if key == self._first:
-            self.step += 1
-
-    @property
-    def fraction(self) -> float:
-        """Share of the denoising done before this step (0 at the first step)."""
-        return max(self.step, 0) / max(self.total, 1)
-
-
 # ---------------------------------------------------------------- cross-attention rules
 # A rule maps (source map, target map), each (b, heads, T, J, L), to the target's new map.
+
 
 class KeepSource:
     """Mirroring and re-weighting on an unchanged prompt start from the source's map."""
@@ -73,7 +55,7 @@ class WordSwap:
     """Source maps while t >= tau (the early steps), the target's own maps after.
     tau is a fraction of T: 0.8 means the first 20% of the steps follow the source."""
 
-    def __init__(self, alignment: TokenAlignment, tau: float = 0.8):
+    def __init__(self, alignment: TokenAlignment, tau: float = DEFAULT_TAU["swap"]):
         if not 0.0 <= tau <= 1.0:
             raise ValueError(f"tau must be in [0, 1], got {tau}")
         self.alignment, self.tau = alignment, tau
@@ -88,7 +70,7 @@ class Refine:
     """Target tokens aligned to a source token take its map; new tokens keep their own.
     Applied while t >= tau (tau = 0 means every step)."""
 
-    def __init__(self, alignment: TokenAlignment, tau: float = 0.0):
+    def __init__(self, alignment: TokenAlignment, tau: float = DEFAULT_TAU["refine"]):
         if not 0.0 <= tau <= 1.0:
             raise ValueError(f"tau must be in [0, 1], got {tau}")
         self.alignment, self.tau = alignment, tau
@@ -102,6 +84,7 @@ class Refine:
 
 
 # ---------------------------------------------------------------- map transforms
+
 
 class Reweight:
     """Scale the attention of the given token positions by s (not renormalised, so s
@@ -147,6 +130,7 @@ class Mirror:
 
 # ---------------------------------------------------------------- the controller
 
+
 class AttentionEdit:
     """Algorithm 1: the target branch's cross-attention becomes Edit(M_source, M_target, t),
     and its temporal and skeletal self-attention follow the source for the first
@@ -154,7 +138,7 @@ class AttentionEdit:
     prompt and hidden states, as in the paper. `observers` see the maps actually used.
     """
 
-    def __init__(self, rows: Rows, steps: int, rule, transforms=(), self_inject: float = 0.2,
+    def __init__(self, rows: Rows, steps: int, rule, transforms=(), self_inject: float = DEFAULT_SELF_INJECT,
                  observers=()):
         if not 0.0 <= self_inject <= 1.0:
             raise ValueError(f"self-attention injection must be a fraction in [0, 1], got {self_inject}")

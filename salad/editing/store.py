@@ -61,6 +61,27 @@ def to_motion_rate(m: np.ndarray, frames: int) -> np.ndarray:
     return m[..., lo] * (1 - w) + m[..., hi] * w
 
 
+class StepCounter:
+    """Counts denoising steps: a step starts at every call of the first attention module."""
+
+    def __init__(self, total_steps: int = 0):
+        self.total = total_steps
+        self.step = -1
+        self._first: tuple[str, int] | None = None
+
+    def see(self, call: AttentionCall) -> None:
+        key = (call.kind, call.layer)
+        if self._first is None:
+            self._first = key
+        if key == self._first:
+            self.step += 1
+
+    @property
+    def fraction(self) -> float:
+        """Share of the denoising done before this step (0 at the first step)."""
+        return max(self.step, 0) / max(self.total, 1)
+
+
 class AttentionStore:
     """A controller that observes (and never changes) cross-attention maps.
 
@@ -73,22 +94,22 @@ class AttentionStore:
         self.text, self.rows, self.frames = text, rows, frames
         self.layer_filter = set(layers) if layers is not None else None
         self.step_range = steps
-        self.step = -1
-        self._first_layer = None
+        # fed cross-attention calls only: a step starts at the first cross-attention layer,
+        # one map set per network evaluation
+        self.counter = StepCounter()
         self._current: dict[int, torch.Tensor] = {}
         self.captured: list[dict[int, torch.Tensor]] = []
 
     def __call__(self, call: AttentionCall) -> torch.Tensor:
         if call.kind != CROSS:
             return call.probs
-        if self._first_layer is None:
-            self._first_layer = call.layer
-        if call.layer == self._first_layer:
+        step = self.counter.step
+        self.counter.see(call)
+        if self.counter.step != step:
             self._flush()
-            self.step += 1
         if self.layer_filter is not None and call.layer not in self.layer_filter:
             return call.probs
-        if self.step_range is not None and not self.step_range[0] <= self.step < self.step_range[1]:
+        if self.step_range is not None and not self.step_range[0] <= self.counter.step < self.step_range[1]:
             return call.probs
         p = call.probs[self.rows].float().mean(dim=1)          # (b, T*J, L), head mean
         b, q, L = p.shape

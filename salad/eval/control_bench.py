@@ -28,8 +28,6 @@ samples, on this machine's CPU threads; MoLA reports 1.04 s on an A100 GPU.
 """
 from __future__ import annotations
 
-import argparse
-import itertools
 import json
 import time
 from dataclasses import dataclass
@@ -312,73 +310,3 @@ def write_control_report(results: dict[str, Any], out_dir: str | Path) -> Path:
     path = out / "report.md"
     atomic_write_text(path, markdown_report(results))
     return path
-
-
-# ---------------------------------------------------------------- command line
-
-def _float_list(text: str, what: str) -> list[float]:
-    try:
-        items = [float(t) for t in str(text).split(",") if t.strip()]
-    except ValueError:
-        raise ValueError(f"--{what}: cannot read {text!r} as a comma list of numbers") from None
-    if not items:
-        raise ValueError(f"--{what} is empty")
-    return items
-
-
-def add_parser(sub) -> argparse.ArgumentParser:
-    """Register `eval-control` on the CLI's subparsers."""
-    from . import EMBEDDED_EVALUATOR
-    p = sub.add_parser("eval-control", help="path-following benchmark: Traj/Loc/Avg err, FID, R-precision, AITS")
-    p.add_argument("--data", required=True, help="HumanML3D-layout dataset")
-    p.add_argument("--evaluator", default=str(EMBEDDED_EVALUATOR),
-                   help="evaluator checkpoint directory (default: the one shipped in assets/eval)")
-    p.add_argument("--out", required=True, help="directory for results.json and report.md")
-    p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
-    p.add_argument("--split", default="test", help="split to draw motions from (tune on val, report on test)")
-    p.add_argument("--samples", type=int, default=32, help="motions to control")
-    p.add_argument("--joints", default="pelvis",
-                   help=f"comma list of joints to control, e.g. {','.join(OMNICONTROL_JOINTS)}")
-    p.add_argument("--density", default="100%", help="controlled frames: '100%%', '25%%' or a count such as 1, 2, 5")
-    p.add_argument("--strength", default="1", help="guidance strength; comma lists here and below make one row "
-                                                   "per combination")
-    p.add_argument("--gradient-steps", default=None, help="guidance steps per network evaluation")
-    p.add_argument("--refine-steps", default=None, help="guidance steps on the final latent")
-    p.add_argument("--repeats", default=None, help="time-travel repeats per step (default: 1-3 by phase)")
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--cfg", type=float, default=7.5)
-    p.add_argument("--max-frames", type=int, default=196)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
-    p.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
-    p.set_defaults(func=cmd_eval_control)
-    return p
-
-
-def cmd_eval_control(a) -> int:
-    from ..data.dataset import MotionDataset
-    from ..pipeline import load_pipeline
-    from .evaluator import load_evaluator
-
-    joints = parse_joints(a.joints)
-    parse_density(a.density)
-    options = {"strength": _float_list(a.strength, "strength")}
-    for key in ("gradient_steps", "refine_steps", "repeats"):
-        text = getattr(a, key)
-        if text is not None:
-            options[key] = [int(v) for v in _float_list(text, key.replace("_", "-"))]
-    settings = [dict(zip(options, combo)) for combo in itertools.product(*options.values())]
-    out = Path(a.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a directory")
-    ev = load_evaluator(a.evaluator)
-    ds = MotionDataset(a.data, a.split, max_frames=10 ** 9)
-    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None)
-    res = evaluate_control(pipe, ds, ev, samples=a.samples, steps=a.steps, cfg=a.cfg, settings=settings,
-                           joints=joints, density=a.density, seed=a.seed, max_frames=a.max_frames,
-                           progress=lambda msg: print(msg, flush=True))
-    res["protocol"].update(model=str(pipe.source), split=a.split, evaluator=str(a.evaluator))
-    path = write_control_report(res, out)
-    print(path.read_text())
-    print(f"wrote {out / 'results.json'} and {path}")
-    return 0

@@ -15,14 +15,12 @@ Results are mean ± 95% CI over cases × seeds, written as results.json and repo
 """
 from __future__ import annotations
 
-import argparse
 import time
-from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .edit_suite import AMPLITUDES, DEFAULT_SCALES, MODES, EditCase, default_suite
+from .edit_suite import AMPLITUDES, DEFAULT_SCALES, EditCase, default_suite
 
 CHECK_KEYS = ("left_wrist_path_m", "right_wrist_path_m", "left_wrist_height_m", "right_wrist_height_m",
               "root_speed_mps", "turn_deg")
@@ -260,60 +258,3 @@ def _case_dict(case: EditCase) -> dict[str, Any]:
     d = asdict(case)
     d["baseline"] = case.baseline
     return {k: v for k, v in d.items() if v not in (None, {}, "")}
-
-
-# ---------------------------------------------------------------- command line
-
-def add_parser(sub) -> argparse.ArgumentParser:
-    """Register `eval-edit` on the CLI's subparsers."""
-    from . import EMBEDDED_CLASSIFIER
-    p = sub.add_parser("eval-edit", help="editing benchmark: success and preservation of attention edits vs "
-                                         "plain regeneration")
-    p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
-    p.add_argument("--classifier", default=str(EMBEDDED_CLASSIFIER),
-                   help="content/style/side classifier checkpoint (default: the one shipped in assets/eval)")
-    p.add_argument("--out", required=True, help="directory for results.json and report.md")
-    p.add_argument("--seeds", type=int, default=5, help="seeds per case")
-    p.add_argument("--seed", type=int, default=0, help="first seed")
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--cfg", type=float, default=7.5)
-    p.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
-    p.add_argument("--modes", default=",".join(MODES), help=f"comma list of {', '.join(MODES)}")
-    p.add_argument("--scales", default=",".join(f"{s:g}" for s in DEFAULT_SCALES),
-                   help="re-weighting scales, comma list in [-3, 3]")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
-    p.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
-    p.set_defaults(func=cmd_eval_edit)
-    return p
-
-
-def _parse_list(text: str, what: str, kind=str) -> list:
-    items = [t.strip() for t in str(text).split(",") if t.strip()]
-    if not items:
-        raise ValueError(f"--{what} is empty")
-    try:
-        return [kind(t) for t in items]
-    except ValueError:
-        raise ValueError(f"--{what}: cannot read {text!r} as a comma list of numbers") from None
-
-
-def cmd_eval_edit(a) -> int:
-    from ..pipeline import load_pipeline
-    from .classifiers import load_classifier
-    from .edit_report import format_report, write_results
-
-    modes = _parse_list(a.modes, "modes")
-    scales = _parse_list(a.scales, "scales", float)
-    cases = default_suite(modes)
-    out = Path(a.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a directory")
-    clf = load_classifier(a.classifier)
-    clf.meta["path"] = str(a.classifier)
-    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None)
-    results = run_edit_benchmark(pipe, clf, cases, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
-                                 scales=scales, seed_base=a.seed, progress=lambda m: print(m, flush=True))
-    write_results(results, out)
-    print(format_report(results))
-    print(f"wrote {out / 'results.json'} and {out / 'report.md'}")
-    return 0

@@ -120,3 +120,39 @@ def is_monotonic(values: Sequence[float], increasing: bool = True) -> bool:
         raise ValueError(f"need a 1-d sequence of at least 2 values, got shape {v.shape}")
     d = np.diff(v) if increasing else -np.diff(v)
     return bool((d >= 0).all() and (d > 0).any())
+
+
+# ---------------------------------------------------------------- real motions and their reconstructions
+# (these take motions of different lengths where they say so)
+
+
+def mpjpe(a: np.ndarray, b: np.ndarray, root_relative: bool = True) -> float:
+    """Mean per-joint position error (metres) of two (T, 22, 3) motions; root_relative
+    compares poses with the pelvis at the origin (the VAE's MPJPE), otherwise it also
+    counts where the body is."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.shape != b.shape or a.ndim != 3:
+        raise ValueError(f"mpjpe needs two motions of one shape, got {a.shape} and {b.shape}")
+    if root_relative:
+        a, b = a - a[:, :1], b - b[:, :1]
+    return float(np.linalg.norm(a - b, axis=-1).mean())
+
+
+def root_path_error(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean horizontal distance (metres) between two motions' pelvis paths, frame by frame
+    over the shorter one."""
+    n = min(len(a), len(b))
+    return float(np.linalg.norm(np.asarray(a)[:n, 0, [0, 2]] - np.asarray(b)[:n, 0, [0, 2]], axis=-1).mean())
+
+
+def root_path_deviation(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean horizontal distance (metres) from each pelvis position of `a` to the polyline of
+    b's pelvis path: how far a leaves b's path, whatever its speed along it."""
+    p = np.asarray(a, np.float64)[:, 0, [0, 2]]
+    q = np.asarray(b, np.float64)[:, 0, [0, 2]]
+    if len(q) == 1:
+        return float(np.linalg.norm(p - q, axis=-1).mean())
+    start, seg = q[:-1], np.diff(q, axis=0)                                   # (S, 2)
+    rel = p[:, None] - start[None]                                           # (P, S, 2)
+    along = np.clip((rel * seg).sum(-1) / np.maximum((seg * seg).sum(-1), 1e-12), 0.0, 1.0)
+    return float(np.linalg.norm(rel - along[..., None] * seg, axis=-1).min(axis=1).mean())

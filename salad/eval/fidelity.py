@@ -16,7 +16,6 @@ clean-up (salad.motion.cleanup: rigid bones, then the foot lock) that generate()
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..files import atomic_write_text
+from ..files import REPO_ROOT
 from ..motion import skeleton as sk
 from ..motion.cleanup import clean_motion
 from ..motion.representation import FPS, features_to_joints
@@ -193,7 +192,6 @@ def reference_clips(data_root: str | Path, cls: FidelityClass, labels: dict, spl
 
 def _shown(path: str) -> str:
     """A model path as a report shows it: relative to the repository when inside it."""
-    from ..pipeline import REPO_ROOT
     p = Path(path).resolve()
     return str(p.relative_to(REPO_ROOT)) if p.is_relative_to(REPO_ROOT) else str(path)
 
@@ -279,41 +277,3 @@ def report_markdown(results: dict) -> str:
             lines.append(f"| {r['class']} | {ref} | {'yes' if v['pass'] else '**no**'} | " + " | ".join(cells)
                          + f" | {v['contact_slide_share']:.2f} / {r['real_contact_slide_share']:.2f} |")
     return "\n".join(lines) + "\n"
-
-
-def add_parser(sub) -> None:
-    """Register `salad eval-fidelity` on the CLI's subparsers."""
-    p = sub.add_parser("eval-fidelity", help="per-class fidelity of held-out paraphrases against real clips")
-    p.add_argument("--data", required=True, help="labelled HumanML3D-layout dataset (labels.json)")
-    p.add_argument("--out", required=True, help="directory for results.json and report.md")
-    p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
-    p.add_argument("--classes", default=None, help="comma list of classes (default: all), e.g. walk,kick")
-    p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--cfg", type=float, default=7.5)
-    p.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
-    p.add_argument("--split", default="test")
-    p.add_argument("--threads", type=int, default=0)
-    p.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
-    p.set_defaults(func=cmd_eval_fidelity)
-
-
-def cmd_eval_fidelity(a) -> int:
-    from ..cli import _progress_bar
-    from ..pipeline import load_pipeline
-
-    classes = [c.strip() for c in a.classes.split(",") if c.strip()] if a.classes else None
-    fidelity_classes(classes)                                    # unknown names fail before loading anything
-    read_labels(a.data)
-    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None)
-    bar, update = _progress_bar("generating")
-    results = evaluate_fidelity(pipe, a.data, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
-                                classes=classes, split=a.split, progress=update)
-    bar.close()
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
-    report = report_markdown(results)
-    atomic_write_text(out / "report.md", report)
-    print(report)
-    return 0

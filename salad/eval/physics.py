@@ -59,13 +59,6 @@ def heading(joints: np.ndarray) -> np.ndarray:
     return gaussian_filter1d(yaw, HEADING_SIGMA, mode="nearest") if len(yaw) > 1 else yaw
 
 
-def turning_angle(joints: np.ndarray) -> float:
-    """Net change of facing in degrees over the motion; positive = turned left."""
-    yaw = heading(check_joints(joints))
-    k = max(1, min(TURN_WINDOW, len(yaw) // 4))
-    return float(np.degrees(yaw[-k:].mean() - yaw[:k].mean()))
-
-
 def _body_frame_offsets(joints: np.ndarray, index: int, yaw: np.ndarray) -> np.ndarray:
     """Joint position relative to the pelvis, turned so the body faces +Z: (T, 3)."""
     rel = joints[:, index] - joints[:, PELVIS]

@@ -24,9 +24,18 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..data.captions import swap_left_right
-from ..data.labels import read_labels
-
-# torch-backed modules are imported where they are used, so that registering the command is cheap
+from ..data.dataset import read_clip
+from ..data.labels import pick_test_clips, read_labels
+from ..diffusion.inversion import METHODS, invert
+from ..editing.real import decode, edit_inverted, encode, reconstruct
+from ..files import atomic_write_text
+from ..motion.real import load_real_motion
+from ..motion.representation import features_to_joints, mirror_features
+from .classifiers import load_classifier
+from .edit_metrics import mpjpe, root_path_deviation, root_path_error
+from .metrics import mean_ci
+from .physics import physical_checks
+from .sdedit import sdedit
 
 SDEDIT_STRENGTHS = (0.3, 0.5, 0.7)
 STYLE_SOURCE = "a person walks forward in an ordinary way"
@@ -35,33 +44,9 @@ STYLE_TARGET = "a person walks forward in an exhausted way"
 Log = Callable[[str], None]
 
 
-# ---------------------------------------------------------------- clips
-
-def pick_test_clips(labels: dict, n: int, content: str | None = None, style: str | None = None) -> list[str]:
-    """n test clips spread evenly over the sorted ids that match content/style."""
-    names = sorted(k for k, v in labels.items() if v.split == "test" and (content is None or v.content == content)
-                   and (style is None or v.style == style))
-    if not names:
-        raise ValueError(f"no test clips with content={content!r} style={style!r}")
-    if n >= len(names):
-        return names
-    return [names[int(i)] for i in np.linspace(0, len(names) - 1, n).round()]
-
-
-def read_clip(root: Path, name: str, max_frames: int) -> tuple[np.ndarray, str]:
-    """(features cut to at most max_frames, the clip's first caption)."""
-    from ..data.dataset import read_captions
-    f = np.load(root / "new_joint_vecs" / f"{name}.npy", allow_pickle=False)
-    caps = read_captions(root / "texts" / f"{name}.txt")
-    if not caps:
-        raise ValueError(f"{root}/texts/{name}.txt: no captions")
-    return f[:max_frames], caps[0].text
-
-
 # ---------------------------------------------------------------- helpers
 
 def _summary(rows: list[dict], keys: Sequence[str]) -> dict:
-    from .metrics import mean_ci
     out = {"clips": len(rows)}
     for k in keys:
         vals = [r[k] for r in rows if r.get(k) is not None and np.isfinite(r[k])]
@@ -80,11 +65,10 @@ def _timed(fn):
 
 # ---------------------------------------------------------------- fidelity
 
+
 def fidelity(pipe, root: Path, names: list[str], methods: Sequence[str], steps: int, cfg: float,
              log: Log = print) -> dict:
     """Inversion + replay with no edit, per method; the VAE's reconstruction as the floor."""
-    from ..editing.inversion import invert
-    from ..editing.real import decode, encode, load_real_motion, mpjpe, reconstruct
 
     per_clip = []
     for name in names:
@@ -114,6 +98,7 @@ def fidelity(pipe, root: Path, names: list[str], methods: Sequence[str], steps: 
 
 # ---------------------------------------------------------------- edits
 
+
 def _judge(clf, variants: dict[str, np.ndarray]) -> dict[str, dict]:
     """Classifier predictions and physical checks for named raw-feature motions."""
     names = list(variants)
@@ -129,11 +114,6 @@ def _judge(clf, variants: dict[str, np.ndarray]) -> dict[str, dict]:
 
 def _edit_task(pipe, clf, root: Path, names: list[str], methods: Sequence[str], steps: int, cfg: float,
                strengths: Sequence[float], seed: int, task: str, log: Log, uncorrected: bool = False) -> dict:
-    from ..editing.inversion import invert
-    from ..editing.real import (decode, edit_inverted, encode, load_real_motion, mpjpe, root_path_deviation,
-                                root_path_error, sdedit)
-    from ..motion.representation import features_to_joints, mirror_features
-    from .physics import physical_checks
 
     per_clip = []
     for name in names:
@@ -206,6 +186,7 @@ def _edit_task(pipe, clf, root: Path, names: list[str], methods: Sequence[str], 
 
 # ---------------------------------------------------------------- the whole benchmark
 
+
 def run_real_edit_bench(pipe, data: str | Path, classifier: str | Path, out: str | Path,
                         clips: int = 10, edit_clips: int = 8, methods: Sequence[str] | None = None,
                         edit_methods: Sequence[str] = ("negative", "fixed_point"), steps: int = 50,
@@ -213,8 +194,6 @@ def run_real_edit_bench(pipe, data: str | Path, classifier: str | Path, out: str
                         uncorrected: bool = False, log: Log = print) -> dict:
     """Run the three parts and write results.json and report.md into `out`. uncorrected=True
     also runs each edit without the per-step corrections."""
-    from ..editing.inversion import METHODS
-    from .classifiers import load_classifier
 
     root = Path(data)
     if not (root / "new_joint_vecs").is_dir():
@@ -245,10 +224,6 @@ def run_real_edit_bench(pipe, data: str | Path, classifier: str | Path, out: str
     return results
 
 
-def _cm(x) -> str:
-    return "–" if x is None else f"{100 * x:.2f}"
-
-
 def _pm(s: dict, k: str, scale: float = 1.0, fmt: str = "{:.2f}") -> str:
     if k not in s:
         return "–"
@@ -256,7 +231,6 @@ def _pm(s: dict, k: str, scale: float = 1.0, fmt: str = "{:.2f}") -> str:
 
 
 def write_real_edit_report(results: dict, out: str | Path) -> Path:
-    from ..files import atomic_write_text
     out = Path(out)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2, default=float))
     c = results["config"]
@@ -309,48 +283,3 @@ def write_real_edit_report(results: dict, out: str | Path) -> Path:
     path = out / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path
-
-
-# ---------------------------------------------------------------- command line
-
-def add_parser(sub) -> None:
-    from . import EMBEDDED_CLASSIFIER
-    p = sub.add_parser("eval-real-edit", help="inversion fidelity and edit success on real test motions")
-    p.add_argument("--data", required=True, help="labelled HumanML3D-layout dataset (labels.json, test.txt)")
-    p.add_argument("--classifier", default=str(EMBEDDED_CLASSIFIER),
-                   help="motion classifier checkpoint directory (default: the one shipped in assets/eval)")
-    p.add_argument("--out", required=True, help="directory for results.json and report.md")
-    p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
-    p.add_argument("--clips", type=int, default=10, help="test clips for the fidelity part (0 skips it)")
-    p.add_argument("--edit-clips", type=int, default=8, help="test clips per edit task (0 skips them)")
-    p.add_argument("--methods", default="ddim,negative,null_text,fixed_point",
-                   help="inversion methods for the fidelity part")
-    p.add_argument("--edit-methods", default="negative,fixed_point", help="inversion methods for the edits")
-    p.add_argument("--sdedit", default=",".join(f"{s:g}" for s in SDEDIT_STRENGTHS),
-                   help="SDEdit strengths (fractions of T), comma separated; empty for none")
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--cfg", type=float, default=7.5)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--uncorrected", action="store_true", help="also run each edit without per-step corrections")
-    p.add_argument("--threads", type=int, default=0)
-    p.set_defaults(func=cmd_eval_real_edit)
-
-
-def _csv(text: str, cast=str) -> list:
-    try:
-        return [cast(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise ValueError(f"expected a comma-separated list, got {text!r}") from None
-
-
-def cmd_eval_real_edit(a) -> int:
-    import torch
-    from ..pipeline import load_pipeline
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    pipe = load_pipeline(a.model)
-    run_real_edit_bench(pipe, a.data, a.classifier, a.out, clips=a.clips, edit_clips=a.edit_clips,
-                        methods=_csv(a.methods), edit_methods=_csv(a.edit_methods), steps=a.steps, cfg=a.cfg,
-                        strengths=_csv(a.sdedit, float), seed=a.seed, uncorrected=a.uncorrected)
-    print((Path(a.out) / "report.md").read_text())
-    return 0

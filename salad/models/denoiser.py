@@ -9,7 +9,9 @@ outputs of the first half feed the second half through skip connections.
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Iterator
 
 import torch
 import torch.nn as nn
@@ -123,6 +125,16 @@ class Denoiser(nn.Module):
         """Attach a controller to every attention module (None detaches)."""
         for a in self.attentions():
             a.controller = controller
+
+    @contextmanager
+    def controlled(self, controller) -> Iterator[Denoiser]:
+        """The block runs with `controller` on every attention module (None: plain attention);
+        it is detached however the block ends, so a failed sampling leaves no edit behind."""
+        self.set_controller(controller)
+        try:
+            yield self
+        finally:
+            self.set_controller(None)
 
     def forward(self, z: torch.Tensor, t: torch.Tensor, text: torch.Tensor, text_mask: torch.Tensor | None = None,
                 frame_mask: torch.Tensor | None = None, pooled_text: torch.Tensor | None = None,

@@ -57,39 +57,10 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     ), dim=-1).reshape(q.shape[:-1] + (3, 3))
 
 
-def matrix_to_quat(m: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices (..., 3, 3) to unit quaternions with w >= 0."""
-    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
-    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
-    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
-    # Four candidate solutions; each is well conditioned when its component is largest.
-    cands = torch.stack((
-        torch.stack((1 + m00 + m11 + m22, m21 - m12, m02 - m20, m10 - m01), -1),
-        torch.stack((m21 - m12, 1 + m00 - m11 - m22, m01 + m10, m02 + m20), -1),
-        torch.stack((m02 - m20, m01 + m10, 1 - m00 + m11 - m22, m12 + m21), -1),
-        torch.stack((m10 - m01, m02 + m20, m12 + m21, 1 - m00 - m11 + m22), -1),
-    ), dim=-2)
-    diag = torch.stack((1 + m00 + m11 + m22, 1 + m00 - m11 - m22,
-                        1 - m00 + m11 - m22, 1 - m00 - m11 + m22), -1)
-    best = diag.argmax(-1, keepdim=True)
-    q = torch.gather(cands, -2, best.unsqueeze(-1).expand(best.shape + (4,))).squeeze(-2)
-    q = qnormalize(q)
-    return torch.where(q[..., :1] < 0, -q, q)
-
-
 def quat_to_cont6d(q: torch.Tensor) -> torch.Tensor:
     """The first two columns of the rotation matrix, concatenated (Zhou et al. 6D)."""
     m = quat_to_matrix(q)
     return torch.cat((m[..., 0], m[..., 1]), dim=-1)
-
-
-def cont6d_to_matrix(x: torch.Tensor) -> torch.Tensor:
-    a, b = x[..., :3], x[..., 3:]
-    c0 = a / a.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    b = b - (c0 * b).sum(-1, keepdim=True) * c0
-    c1 = b / b.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    c2 = torch.cross(c0, c1, dim=-1)
-    return torch.stack((c0, c1, c2), dim=-1)
 
 
 def yaw_quat(angle: torch.Tensor) -> torch.Tensor:

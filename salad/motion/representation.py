@@ -14,17 +14,18 @@ and returns the same kind. Work happens in torch, vectorised over frames.
 """
 from __future__ import annotations
 
-import math
 from functools import lru_cache
 
 import numpy as np
 import torch
 
-from . import skeleton as sk
+import salad.motion.skeleton as sk
 from .quaternion import qbetween, qinv, qmul, qrot, quat_to_cont6d
 
 FEATURE_DIM = 263
 FPS = 20
+# The shortest motion the model makes or takes: 4 latent frames (the VAE's latent has T/4 frames).
+MIN_AUTO_FRAMES = 16
 ROOT_SLICE = slice(0, 4)
 RIC_SLICE = slice(4, 4 + 21 * 3)
 ROT_SLICE = slice(67, 67 + 21 * 6)
@@ -395,11 +396,3 @@ def feature_statistics(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         std[g] = std[g].mean()
     std = np.maximum(std, 1e-3)
     return mean.astype(np.float32), std.astype(np.float32)
-
-
-def frames_to_seconds(n: int) -> float:
-    return n / FPS
-
-
-def seconds_to_frames(s: float) -> int:
-    return int(math.floor(s * FPS + 0.5))

@@ -52,7 +52,7 @@ def _best(rows: list[dict]) -> dict:
 def run(motion: np.ndarray, frames: int = 120, sizes=(384, 448), repeats: int = 3) -> list[dict]:
     """Rows of timings: kind "single" per size, "side-by-side" (fresh and "reused source")
     at the studio's panel size, and "png" (attention heatmaps of a 10-word prompt)."""
-    from . import backend
+    import salad.render.backend as backend
     from .figures import attention_png
     from .video import PANEL_SIZE, panel_cache, render_side_by_side, render_video
 

@@ -13,7 +13,8 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from . import backend, style
+import salad.render.backend as backend
+import salad.render.style as style
 
 _engine: "Engine | None" = None
 _depth = 0  # nesting of engine() in the thread holding the lock

@@ -10,7 +10,7 @@ import numpy as np
 
 from salad.motion import skeleton as sk
 
-from . import style
+import salad.render.style as style
 from .geometry import BONES, HEAD
 
 if TYPE_CHECKING:

@@ -13,7 +13,7 @@ import trimesh
 
 from salad.motion import skeleton as sk
 
-from . import style
+import salad.render.style as style
 
 UP = np.array([0.0, 1.0, 0.0])
 BONES = tuple((int(p), c) for c, p in enumerate(sk.PARENTS) if p >= 0)

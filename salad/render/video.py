@@ -16,20 +16,21 @@ from collections import OrderedDict
 from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
 from salad.motion import skeleton as sk
 
-from . import camera as cam
-from . import geometry as geo
-from . import overlay, style
+import salad.render.camera as cam
+import salad.render.geometry as geo
+import salad.render.overlay as overlay
+import salad.render.style as style
 from .backend import gl_backend
 from .engine import engine
 from ..files import atomic_path
+from ..progress import Progress
 
-Progress = Callable[[int, int], None]
 DEFAULT_SIZE = (448, 448)
 PANEL_SIZE = (384, 384)
 BLOCK = 24          # frames of vertex data built per NumPy pass

@@ -4,11 +4,13 @@ from __future__ import annotations
 import argparse
 import math
 
-from .motion.control import (PATH_PRESETS, ControlSignal, control_errors, crop_signal, lower_body_signal, parse_points,
+from ..editing.spec import MIRROR_PARTS, EditSpec
+from ..motion.control import (PATH_PRESETS, ControlSignal, control_errors, crop_signal, lower_body_signal, parse_points,
                              path_signal, preset_path, read_keyframes, read_mola_control, read_motion_joints,
                              read_targets)
-from .motion.motion import check_output_paths
-from .motion.representation import FPS
+from ..motion.motion import check_output_paths
+from ..motion.representation import FPS
+from .common import add_bvh_units, print_warnings, progress_bar
 
 DEFAULT_PATH_SECONDS = 5.0
 SOURCES = ("path", "path_preset", "mola", "targets", "keyframes", "lower_body_from")
@@ -16,8 +18,6 @@ SOURCES = ("path", "path_preset", "mola", "targets", "keyframes", "lower_body_fr
 
 def add_parser(sub) -> argparse.ArgumentParser:
     """Register `control` on the CLI's subparsers."""
-    from .cli import add_bvh_units
-
     c = sub.add_parser("control", help="guided generation: follow a pelvis path, keyframes, targets or a lower body")
     c.add_argument("prompt")
     src = c.add_mutually_exclusive_group(required=True)
@@ -44,7 +44,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     c.add_argument("--repeats", type=int, default=None, help="time-travel repeats per step (default: 1-3 by phase)")
     c.add_argument("--gradient-steps", type=int, default=None, help="guidance steps per network evaluation")
     c.add_argument("--refine-steps", type=int, default=None, help="guidance steps on the final latent")
-    c.add_argument("--mirror", choices=("lower", "upper", "all"), default=None,
+    c.add_argument("--mirror", choices=MIRROR_PARTS, default=None,
                    help="also mirror these limbs by attention editing; the unedited motion is written next to each "
                         "output with a _source suffix")
     c.add_argument("--model", default=None, help="model directory (default: the embedded model)")
@@ -98,8 +98,7 @@ def _error_line(m, sig: ControlSignal) -> str:
 
 
 def cmd_control(a) -> int:
-    from .cli import _progress_bar, print_warnings
-    from .pipeline import load_pipeline
+    from ..pipeline import load_pipeline
 
     sig = signal_from_args(a)
     outs = check_output_paths(a.output)
@@ -110,11 +109,11 @@ def cmd_control(a) -> int:
     if sig.frames > pipe.canvas_frames:
         raise ValueError(f"the control signal spans {sig.frames} frames ({sig.frames / FPS:g} s); the model makes at "
                          f"most {pipe.canvas_frames} ({pipe.max_seconds:g} s): pass a shorter --seconds")
-    bar, update = _progress_bar("guided sampling")
+    bar, update = progress_bar("guided sampling")
     res = pipe.control(a.prompt, signal=sig, seed=a.seed, strength=a.strength, steps=a.steps, cfg=a.cfg,
                        repeats=a.repeats, gradient_steps=a.gradient_steps, refine_steps=a.refine_steps,
                        progress=update, foot_lock=not a.no_foot_lock,
-                       edit=None if a.mirror is None else {"mode": "mirror", "mirror": a.mirror})
+                       edit=None if a.mirror is None else EditSpec(mode="mirror", mirror=a.mirror))
     bar.close()
     motions = [("", res)] if a.mirror is None else [("", res.edited), ("_source", res.source)]
     print_warnings(*(m for _, m in motions))

@@ -20,13 +20,13 @@ from ..files import atomic_write_text
 from ..config import apply_overrides, load_toml, to_dict
 from ..data.dataset import MotionDataset, load_normalizer
 from ..models.text_bank import TextBank
-from ..training.configs import OptimConfig, RunConfig
-from .evaluator import KIND, Evaluator, EvaluatorConfig, TextMotionMatcher, load_evaluator, save_evaluator
+from .configs import OptimConfig, RunConfig
+from ..eval.evaluator import KIND, Evaluator, EvaluatorConfig, TextMotionMatcher, load_evaluator, save_evaluator
 from ..data.labels import read_labels
-from .metrics import r_precision
-from .networks import CONTACT_CHANNELS
-from .sampling import fixed_crop, normalized_batch, random_crop
-from .selection import best_score, log_validation
+from ..eval.metrics import r_precision
+from ..eval.networks import CONTACT_CHANNELS
+from ..eval.sampling import fixed_crop, normalized_batch, random_crop
+from ..eval.selection import best_score, log_validation
 
 
 @dataclass
@@ -170,7 +170,7 @@ def load_config(args) -> EvaluatorTrainConfig:
 
 def train_evaluator(args, text_encoder=None) -> int:
     """Train, select by validation R-precision, then score the selected model on val and test."""
-    from ..training.loop import Trainer
+    from .loop import Trainer
 
     cfg = load_config(args)
     if cfg.run.threads:

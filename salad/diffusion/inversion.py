@@ -28,67 +28,63 @@ from typing import Callable
 
 import torch
 
-from ..diffusion.sampling import cfg_combine
 from ..models.text import TextFeatures
+from ..progress import Progress
+from .sampling import cfg_combine
+from .schedule import NoiseSchedule
 
 METHODS = ("ddim", "negative", "null_text", "fixed_point")
-
-Progress = Callable[[int, int], None]
 
 
 # ---------------------------------------------------------------- the DDIM grid
 
 @dataclass
 class DDIMGrid:
-    """The sampler's timesteps and the cumulative alphas around each step, exactly as
-    diffusers' DDIM scheduler steps them (including its rule for the step's target)."""
+    """The sampler's timesteps and where each step lands, exactly as diffusers' DDIM
+    scheduler steps them (including its rule for the step's target)."""
 
     timesteps: list[int]          # t_i, descending
-    targets: list[int]            # timestep whose alpha x_{i+1} sits at (0 for the final one)
-    alpha: torch.Tensor           # (n,) float64 alpha-bar at t_i
-    alpha_next: torch.Tensor      # (n,) float64 alpha-bar that step i lands on
+    targets: list[int]            # timestep x_{i+1} sits at (0 for the final one)
 
     @property
     def steps(self) -> int:
         return len(self.timesteps)
 
 
-def ddim_grid(schedule, steps: int) -> DDIMGrid:
+def ddim_grid(schedule: NoiseSchedule, steps: int) -> DDIMGrid:
     sched = schedule.sampler("ddim", steps)
-    a = sched.alphas_cumprod.to(torch.float64)
     stride = sched.config.num_train_timesteps // sched.num_inference_steps
     ts = [int(t) for t in sched.timesteps]
-    prev = [t - stride for t in ts]
-    final = float(sched.final_alpha_cumprod)
-    alpha_next = torch.tensor([float(a[p]) if p >= 0 else final for p in prev], dtype=torch.float64)
-    # the alpha the last step lands on is alpha-bar at t=0 (set_alpha_to_one=False): the model's own t=0
-    targets = [p if p >= 0 else 0 for p in prev]
-    if float(a[0]) != final:
+    # the last step lands on alpha-bar at t=0 (set_alpha_to_one=False): the model's own t=0
+    targets = [max(t - stride, 0) for t in ts]
+    if float(sched.alphas_cumprod[0]) != float(sched.final_alpha_cumprod):
         raise ValueError("inversion needs a DDIM schedule whose final alpha is alpha-bar(0)")
-    return DDIMGrid(ts, targets, a[ts], alpha_next)
+    return DDIMGrid(ts, targets)
 
 
-def x0_eps(x: torch.Tensor, out: torch.Tensor, alpha: float, prediction: str):
-    """Clean-sample and noise estimates from a model output at noise level alpha (float64 maths)."""
-    sa, s1a = math.sqrt(alpha), math.sqrt(1.0 - alpha)
-    x, out = x.double(), out.double()
-    if prediction == "v_prediction":
-        return sa * x - s1a * out, s1a * x + sa * out
-    if prediction == "epsilon":
-        return (x - s1a * out) / sa, out
-    return out, (x - sa * out) / s1a
+# The steps below run in float64 (the schedule's maths on float64 tensors): inversion
+# accumulates every step's rounding.
+
+def _at(t: int) -> torch.Tensor:
+    return torch.tensor([int(t)])
 
 
-def ddim_step(x: torch.Tensor, out: torch.Tensor, alpha: float, alpha_next: float, prediction: str) -> torch.Tensor:
-    """One deterministic DDIM step (eta = 0), the same update as diffusers' DDIMScheduler."""
-    x0, eps = x0_eps(x, out, alpha, prediction)
-    return (math.sqrt(alpha_next) * x0 + math.sqrt(1.0 - alpha_next) * eps).to(x.dtype)
+def noise_estimate(schedule: NoiseSchedule, x: torch.Tensor, out: torch.Tensor, t: int) -> torch.Tensor:
+    """The noise that a model output at timestep t implies for x."""
+    return schedule.to_x0_eps(x.double(), out.double(), _at(t))[1]
 
 
-def renoise(x_next: torch.Tensor, eps: torch.Tensor, alpha: float, alpha_next: float) -> torch.Tensor:
-    """The x at level alpha that a DDIM step with noise estimate eps takes to x_next."""
-    x0 = (x_next.double() - math.sqrt(1.0 - alpha_next) * eps) / math.sqrt(alpha_next)
-    return (math.sqrt(alpha) * x0 + math.sqrt(1.0 - alpha) * eps).to(x_next.dtype)
+def ddim_step(schedule: NoiseSchedule, x: torch.Tensor, out: torch.Tensor, t: int, t_next: int) -> torch.Tensor:
+    """One deterministic DDIM step (eta = 0) from t to t_next, the same update as diffusers' DDIMScheduler."""
+    x0, eps = schedule.to_x0_eps(x.double(), out.double(), _at(t))
+    return schedule.add_noise(x0, eps, _at(t_next)).to(x.dtype)
+
+
+def renoise(schedule: NoiseSchedule, x_next: torch.Tensor, eps: torch.Tensor, t: int, t_next: int) -> torch.Tensor:
+    """The x at timestep t that a DDIM step with noise estimate eps takes to x_next (at t_next)."""
+    eps = eps.double()
+    x0 = schedule.remove_noise(x_next.double(), eps, _at(t_next))
+    return schedule.add_noise(x0, eps, _at(t)).to(x_next.dtype)
 
 
 # ---------------------------------------------------------------- the denoiser as inversion sees it
@@ -102,7 +98,7 @@ class Denoise:
 
     def __init__(self, pipe, fp32: bool = True):
         self.pipe, self.fp32 = pipe, fp32
-        self.prediction = pipe.schedule.config.prediction_type
+        self.schedule = pipe.schedule
         self.calls = 0
 
     def __call__(self, x: torch.Tensor, t: int, text: TextFeatures) -> torch.Tensor:
@@ -204,9 +200,9 @@ def _ddim_inversion(model: Denoise, z0: torch.Tensor, text: TextFeatures, grid: 
     traj = [z0]
     x = z0
     for i in reversed(range(n)):
-        an = float(grid.alpha_next[i])
-        _, eps = x0_eps(x, model.guided(x, grid.targets[i], text, cfg), an, model.prediction)
-        x = renoise(x, eps, float(grid.alpha[i]), an)
+        t, t_next = grid.timesteps[i], grid.targets[i]
+        eps = noise_estimate(model.schedule, x, model.guided(x, t_next, text, cfg), t_next)
+        x = renoise(model.schedule, x, eps, t, t_next)
         traj.append(x)
         tick()
     return torch.stack(traj[::-1])
@@ -225,15 +221,15 @@ def _fixed_point_inversion(model: Denoise, z0: torch.Tensor, text: TextFeatures,
     x_next, eps = z0, None
     residuals, used = [], []
     for i in reversed(range(n)):
-        a, an = float(grid.alpha[i]), float(grid.alpha_next[i])
+        t, t_next = grid.timesteps[i], grid.targets[i]
         if eps is None:
-            _, eps = x0_eps(x_next, model.guided(x_next, grid.targets[i], text, cfg), an, model.prediction)
-        x = renoise(x_next, eps, a, an)
+            eps = noise_estimate(model.schedule, x_next, model.guided(x_next, t_next, text, cfg), t_next)
+        x = renoise(model.schedule, x_next, eps, t, t_next)
         change = float("nan")
         k = 0
         for k in range(1, iterations + 1):
-            _, eps = x0_eps(x, model.guided(x, grid.timesteps[i], text, cfg), a, model.prediction)
-            x_new = renoise(x_next, eps, a, an)
+            eps = noise_estimate(model.schedule, x, model.guided(x, t, text, cfg), t)
+            x_new = renoise(model.schedule, x_next, eps, t, t_next)
             change = float((x_new - x).norm() / x_new.norm().clamp_min(1e-12))
             x = x_new
             if change < tol:
@@ -257,7 +253,7 @@ def _null_text_inversion(model: Denoise, pivot: torch.Tensor, text: TextFeatures
     x = pivot[0]
     out_u, losses = [], []
     for i in range(grid.steps):
-        t, a, an = grid.timesteps[i], float(grid.alpha[i]), float(grid.alpha_next[i])
+        t, t_next = grid.timesteps[i], grid.targets[i]
         target = pivot[i + 1].double()
         with torch.no_grad():
             c_out = model(x, t, cond)
@@ -270,7 +266,7 @@ def _null_text_inversion(model: Denoise, pivot: torch.Tensor, text: TextFeatures
             with torch.enable_grad():
                 u_out = model(x, t, with_uncond(rows(text, [0]), [0], u))
                 guided = u_out + cfg * (c_out - u_out)
-                x_new = ddim_step(x, guided, a, an, model.prediction)
+                x_new = ddim_step(model.schedule, x, guided, t, t_next)
                 loss = torch.mean((x_new.double() - target) ** 2)
                 if j == inner or loss.item() < threshold:
                     break
@@ -361,18 +357,15 @@ def sample_grid(pipe, x: torch.Tensor, grid: DDIMGrid, text: TextFeatures, cfg: 
         raise ValueError(f"from_step must be in 0..{grid.steps - 1}, got {from_step}")
     model = Denoise(pipe, fp32=fp32)
     uncond_rows = list(range(B))
-    pipe.denoiser.set_controller(controller)
-    try:
+    with pipe.denoiser.controlled(controller):
         for i in range(from_step, grid.steps):
             step_text = with_uncond(text, uncond_rows, uncond[i] if uncond is not None else None)
             out = cfg_combine(model(torch.cat((x, x)), grid.timesteps[i], step_text), cfg)
-            x = ddim_step(x, out, float(grid.alpha[i]), float(grid.alpha_next[i]), model.prediction)
+            x = ddim_step(model.schedule, x, out, grid.timesteps[i], grid.targets[i])
             if trajectory is not None:
                 x = x + (trajectory[i + 1] - x[:1])
             if progress is not None:
                 progress(i + 1 - from_step, grid.steps - from_step)
-    finally:
-        pipe.denoiser.set_controller(None)
     return x
 
 

@@ -21,12 +21,12 @@ import torch.nn as nn
 from ..files import atomic_write_text
 from ..config import apply_overrides, load_toml, to_dict
 from ..data.dataset import MotionDataset, load_normalizer
-from ..training.configs import OptimConfig, RunConfig
-from .classifiers import HEADS, KIND, Classifier, ClassifierConfig, MotionClassifier, load_classifier, save_classifier
+from .configs import OptimConfig, RunConfig
+from ..eval.classifiers import HEADS, KIND, Classifier, ClassifierConfig, MotionClassifier, load_classifier, save_classifier
 from ..data.labels import MotionLabels, read_labels
-from .networks import CONTACT_CHANNELS
-from .sampling import fixed_crop, normalized_batch, random_crop
-from .selection import best_score, log_validation
+from ..eval.networks import CONTACT_CHANNELS
+from ..eval.sampling import fixed_crop, normalized_batch, random_crop
+from ..eval.selection import best_score, log_validation
 
 
 @dataclass
@@ -148,7 +148,7 @@ class ClassifierTask:
 
 def train_classifier(args) -> int:
     """Train, select by validation accuracy, then report per-head accuracy on val and test."""
-    from ..training.loop import Trainer
+    from .loop import Trainer
 
     cfg = load_toml(ClassifierTrainConfig, args.config)
     apply_overrides(cfg, args)

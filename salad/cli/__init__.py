@@ -1,0 +1,39 @@
+"""The `salad` command: one module per command group, each with its `add_parser` and `cmd_*`
+functions; the library below holds no argparse code."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from . import bench, control, data, edit, eval, generate, train
+
+
+def _env_defaults() -> None:
+    # Never reach for a model hub or send telemetry: everything here runs offline.
+    for k, v in (("HF_HUB_OFFLINE", "1"), ("HF_HUB_DISABLE_TELEMETRY", "1"), ("TRANSFORMERS_OFFLINE", "1"),
+                 ("GRADIO_ANALYTICS_ENABLED", "False")):
+        os.environ.setdefault(k, v)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="salad", description="Skeleton-aware latent diffusion for text-driven motion.")
+    sub = p.add_subparsers(dest="command", required=True)
+    # in the order `salad --help` has always listed them
+    for add in (data.add_parser, generate.add_parser, edit.add_edit, bench.add_parser, eval.add_eval,
+                train.add_parser, control.add_parser, edit.add_edit_real, eval.add_eval_control, eval.add_eval_edit,
+                eval.add_eval_fidelity, eval.add_eval_length, eval.add_eval_real_edit):
+        add(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    _env_defaults()
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args) or 0
+    except KeyboardInterrupt:
+        return 130
+    except (ValueError, FileNotFoundError, RuntimeError) as e:
+        print(f"salad: error: {e}", file=sys.stderr)
+        return 2

@@ -1,0 +1,63 @@
+"""What several commands share: progress bars, prompt warnings, --bvh-units and WORD=SCALE lists."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+class LazyBar:
+    """A tqdm bar that appears at the first progress report, so an argument error raised
+    before any work is printed on a clean line instead of after an empty bar."""
+
+    def __init__(self, desc: str):
+        self.desc, self.bar = desc, None
+
+    def update(self, i: int, n: int) -> None:
+        if self.bar is None:
+            from tqdm import tqdm
+            self.bar = tqdm(total=n, desc=self.desc, leave=False)
+        self.bar.total = n
+        self.bar.n = i
+        self.bar.refresh()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def progress_bar(desc: str):
+    """(bar, its update function) for a library call's progress=."""
+    bar = LazyBar(desc)
+    return bar, bar.update
+
+
+def print_warnings(*motions) -> None:
+    """The motions' prompt warnings (salad.models.vocabulary) on stderr, each once."""
+    seen = []
+    for m in motions:
+        for w in m.warnings:
+            if w not in seen:
+                seen.append(w)
+                print(f"warning: {m.text!r}: {w}", file=sys.stderr)
+
+
+def add_bvh_units(parser: argparse.ArgumentParser) -> None:
+    """--bvh-units, for every command that can write BVH files."""
+    # Spelled out to keep the CLI free of torch; tests check it against salad.motion.bvh_export.UNITS_PER_METRE.
+    parser.add_argument("--bvh-units", choices=("cm", "m"), default="cm",
+                        help="units of .bvh files: cm (default; Maya and MotionBuilder read them as is, Blender "
+                             "with Scale 0.01) or m (Blender at its default scale)")
+
+
+def parse_reweight(items) -> dict[str, float] | None:
+    """["word=scale", ...] -> {word: scale}."""
+    out = {}
+    for item in items or []:
+        word, _, scale = item.rpartition("=")
+        try:
+            out[word] = float(scale)
+        except ValueError:
+            raise ValueError(f"--reweight takes WORD=SCALE, got {item!r}") from None
+        if not word:
+            raise ValueError(f"--reweight takes WORD=SCALE, got {item!r}")
+    return out or None

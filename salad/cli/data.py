@@ -1,0 +1,104 @@
+"""`salad data`: build datasets, inspect them, write a model's vocabulary."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def _split_fractions(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected TRAIN,VAL,TEST fractions such as 0.8,0.05,0.15, got {text!r}")
+
+
+def cmd_data_build(a) -> int:
+    if a.source == "bandai":
+        from ..data.build import build_bandai
+        bvh_only = [f"--{k.replace('_', '-')}" for k in ("mapping", "mirror", "split", "captions", "allow_uncaptioned")
+                    if getattr(a, k) not in (None, False)]
+        if bvh_only:
+            raise SystemExit(f"{', '.join(bvh_only)}: only for --source bvh")
+        report = build_bandai(a.input, a.out, workers=a.workers, seed=a.seed)
+    else:
+        from ..data.build_bvh import build_bvh
+        report = build_bvh(a.input, a.out, mapping=a.mapping or "auto", mirror=a.mirror is not False,
+                           workers=a.workers, seed=a.seed, split=a.split or (0.8, 0.05, 0.15),
+                           captions=a.captions, allow_uncaptioned=a.allow_uncaptioned)
+    print(json.dumps({k: v for k, v in report.items() if k != "skipped"}, indent=2))
+    for name, why in report["skipped"].items():
+        print(f"skipped {name}: {why}")
+    return 0
+
+
+def cmd_data_stats(a) -> int:
+    from ..data.build import dataset_stats
+    s = dataset_stats(a.dir)
+    if a.json:
+        print(json.dumps(s, indent=2))
+        return 0
+    print(f"{a.dir}: {s['motions']} motions, {s['hours']:.2f} hours")
+    for title, key in (("split", "per_split"), ("content", "per_content"), ("style", "per_style"),
+                       ("length", "length_histogram")):
+        if s[key]:
+            print(f"\nper {title}:")
+            for k, v in (sorted(s[key].items()) if key != "length_histogram" else s[key].items()):
+                print(f"  {k:24s} {v:6d}")
+    if s["length_seconds"]:
+        print("\nlength (s): " + ", ".join(f"{k} {v:.2f}" for k, v in s["length_seconds"].items()))
+    return 0
+
+
+def cmd_data_vocabulary(a) -> int:
+    from ..models.io import load_denoiser
+    from ..models.text import load_text_encoder
+    from ..models.vocabulary import build_vocabulary, save_vocabulary
+    model = Path(a.model)
+    _, doc = load_denoiser(model / "denoiser")
+    vocab = build_vocabulary(a.dir, split=a.split)
+    path = save_vocabulary(vocab, load_text_encoder(doc["config"]["text_encoder"]), model)
+    print(f"wrote {path}: {len(vocab.actions)} actions, {len(vocab.examples)} example captions, "
+          f"{len(vocab.words)} words, manner words: {', '.join(vocab.styles) or 'none'}")
+    return 0
+
+
+def add_parser(sub) -> None:
+    data = sub.add_parser("data", help="build and inspect datasets").add_subparsers(dest="data_cmd", required=True)
+    b = data.add_parser(
+        "build", help="build a HumanML3D-format dataset from labelled mocap",
+        description="--source bandai: the Bandai-Namco research motion archive, captions made from its labels. "
+                    "--source bvh: every *.bvh under a folder; a clip's captions come from <clip>.txt next to it "
+                    "(one per line) or from captions.json at the folder's root ({\"path/clip.bvh\": [\"a person "
+                    "...\"]}); a caption is plain text or a HumanML3D line caption#tokens#start#end.")
+    b.add_argument("--source", choices=("bandai", "bvh"), default="bandai", help="dataset kind (default: bandai)")
+    b.add_argument("--input", required=True,
+                   help="bandai: the archive (.tar.xz) or its unpacked folder; bvh: a folder of .bvh files")
+    b.add_argument("--out", required=True, help="output directory")
+    b.add_argument("--workers", type=int, default=2)
+    b.add_argument("--seed", type=int, default=0, help="random seed of the train/val/test split")
+    b.add_argument("--mapping", default=None,
+                   help="bvh: joint names: auto (default: detect), bandai, salad, smpl, mixamo, or FILE.json "
+                        "{\"pelvis\": \"Hips\", ...} naming the source joint of each of the 22 joints")
+    b.add_argument("--mirror", action=argparse.BooleanOptionalAction, default=None,
+                   help="bvh: also store mirrored copies (M<id>) with left/right swapped in the captions "
+                        "(default: on)")
+    b.add_argument("--split", type=_split_fractions, default=None, metavar="TRAIN,VAL,TEST",
+                   help="bvh: split fractions (default: 0.8,0.05,0.15)")
+    b.add_argument("--captions", default=None,
+                   help="bvh: captions JSON keyed by path relative to --input (default: captions.json in --input)")
+    b.add_argument("--allow-uncaptioned", action="store_true",
+                   help="bvh: keep clips without captions (for VAE training) instead of skipping them")
+    b.set_defaults(func=cmd_data_build)
+    s = data.add_parser("stats", help="counts per content, style and split, and lengths")
+    s.add_argument("dir")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_data_stats)
+    v = data.add_parser("vocabulary", help="what a model knows: its trained actions and words, for prompt warnings",
+                        description="Writes vocabulary.json (+ the captions' text features) into a model directory "
+                                    "from the dataset its denoiser was trained on; generation then warns about "
+                                    "prompts outside it.")
+    v.add_argument("dir", help="the dataset (HumanML3D layout; labels.json gives the action of each motion)")
+    v.add_argument("--model", default="assets/model", help="model directory holding denoiser/ (default: the embedded one)")
+    v.add_argument("--split", default="train")
+    v.set_defaults(func=cmd_data_vocabulary)

@@ -1,0 +1,59 @@
+"""`salad train`: the VAE, the denoiser, the evaluator or the classifier."""
+from __future__ import annotations
+
+
+def cmd_train(a) -> int:
+    from ..config import apply_overrides, load_toml
+    from ..training.configs import DenoiserTrainConfig, VAETrainConfig
+    from ..training.loop import Trainer
+    if a.continue_from and a.what not in ("vae", "denoiser"):
+        raise ValueError(f"--continue-from applies to the vae and the denoiser, not to {a.what}")
+    if a.init_from and a.what not in ("vae", "vae-san", "denoiser"):
+        raise ValueError(f"--init-from applies to the vae, vae-san and the denoiser, not to {a.what}")
+    if a.what == "vae":
+        from ..training.vae_task import VAETask
+        cfg = load_toml(VAETrainConfig, a.config)
+        apply_overrides(cfg, a)
+        task, ema = VAETask(cfg), None
+    elif a.what == "denoiser":
+        from ..training.denoiser_task import DenoiserTask
+        cfg = load_toml(DenoiserTrainConfig, a.config)
+        apply_overrides(cfg, a)
+        task, ema = DenoiserTask(cfg), cfg.ema_decay
+    elif a.what == "vae-san":
+        from ..training.vae_adv_task import train_vae_san
+        return train_vae_san(a)
+    elif a.what == "classifier":
+        from ..training.classifier_task import train_classifier
+        return train_classifier(a)
+    else:
+        from ..training.evaluator_task import train_evaluator
+        return train_evaluator(a)
+    trainer = Trainer(task, cfg.optim, cfg.run, ema_decay=ema)
+    if a.init_from or a.continue_from:
+        trainer.init_weights(a.init_from or a.continue_from, carry_step=bool(a.continue_from))
+    out = trainer.fit()
+    print(f"model written to {out}")
+    return 0
+
+
+def add_parser(sub) -> None:
+    t = sub.add_parser("train", help="train the VAE, the denoiser, the evaluator or the classifier",
+                       epilog="--init-from and --continue-from are ignored when the run's out_dir holds a saved "
+                              "state: the run resumes from it.")
+    t.add_argument("what", choices=("vae", "vae-san", "denoiser", "evaluator", "classifier"))
+    t.add_argument("--config", required=True, help="TOML config file")
+    t.add_argument("--out-dir", help="override run.out_dir")
+    t.add_argument("--data", help="override data.root")
+    t.add_argument("--max-steps", type=int, help="override optim.max_steps")
+    t.add_argument("--threads", type=int, help="override run.threads (CPU threads for this process)")
+    t.add_argument("--device", help="override run.device: auto (default: a CUDA GPU when torch sees one, else the "
+                                    "CPU), cpu, cuda or cuda:N; under torchrun each process takes its LOCAL_RANK's GPU")
+    t.add_argument("--vae", help="denoiser: override vae (the VAE whose latents it learns), e.g. assets/model/vae")
+    start = t.add_mutually_exclusive_group()
+    start.add_argument("--init-from", metavar="MODEL_DIR",
+                       help="fine-tune: start a new run (step 0) from an exported model's weights")
+    start.add_argument("--continue-from", metavar="MODEL_DIR",
+                       help="train an exported model further: its weights and step count, so the LR schedule and "
+                            "max_steps count on from its step; the fresh optimiser warms up again over warmup_steps")
+    t.set_defaults(func=cmd_train)
