@@ -74,7 +74,7 @@ def test_generate_returns_video_figure_and_files(client, pipe):
     assert "happily" in summary and "32 frames" in summary and "seed 3" in summary
     names = [Path(f).name for f in files]
     stem = "a-person-waves-their-right-hand-happily_seed3"
-    assert names == [f"{stem}.mp4", f"{stem}.bvh", f"{stem}.npy", f"{stem}_features.npy", f"{stem}.npz"]
+    assert names == [f"{stem}.mp4", f"{stem}.bvh", f"{stem}_joints.npy", f"{stem}_features.npy", f"{stem}.npz"]
     by_ext = {Path(f).suffix: Path(f) for f in files if not f.endswith("_features.npy")}
     joints = np.load(by_ext[".npy"])
     np.testing.assert_array_equal(np.load(files[3]).shape, (32, 263))
@@ -98,7 +98,7 @@ def test_foot_lock_switch_reaches_the_pipeline_and_the_summary(client, pipe):
     off = generate(client, prompt, seconds=seconds, seed=seed, steps=steps, foot_lock=False)
     joints = {}
     for name, out in (("on", on), ("off", off)):
-        joints[name] = np.load(next(f for f in out[3] if f.endswith(".npy") and not f.endswith("_features.npy")))
+        joints[name] = np.load(next(f for f in out[3] if f.endswith("_joints.npy")))
     assert "Foot lock" in on[2] and "Foot lock" not in off[2]
     assert Path(on[3][0]).parent != Path(off[3][0]).parent, "the switch is part of the request: no reuse"
     locked = pipe.generate(prompt, seconds=seconds, seed=seed, steps=steps, return_attention=True)
@@ -189,7 +189,7 @@ def test_eight_simultaneous_sessions_get_their_own_motions(server, pipe, tmp_pat
         c = Client(url, verbose=False, download_files=str(tmp_path / str(i)), analytics_enabled=False)
         prompt, seconds, seed = jobs[i]
         out = generate(c, prompt, seconds=seconds, seed=seed)
-        npy = next(f for f in out[3] if f.endswith(".npy"))
+        npy = next(f for f in out[3] if f.endswith("_joints.npy"))
         # the client is kept: a session whose client has gone is closed and its folder removed
         return np.load(npy), out[2], [w[0] for w in out[4]["choices"]], c
 
@@ -303,6 +303,13 @@ def test_restyle_slider_keeps_every_frame():
     assert len(steps) == 30 and not fig.frames and not fig.layout.updatemenus
     z_up = np.asarray(steps[17].args[0]["z"][0], dtype=float)
     assert np.nanmax(z_up) == pytest.approx(joints[17, :, 1].max(), abs=1e-6)  # plot z is the data's y
+    # the box follows the body: the step also moves the scene's ranges, by dotted keys (the camera stays)
+    assert steps[17].method == "update" and list(steps[17].args[2]) == [2]
+    x0, x1 = steps[17].args[1]["scene.xaxis.range"]
+    assert (x0 + x1) / 2 == pytest.approx(joints[17, 0, 2], abs=1e-6)
+    assert set(steps[17].args[1]) == {"scene.xaxis.range", "scene.yaxis.range"}
+    # without the play button the slider takes the full width
+    assert (fig.layout.sliders[0].x, fig.layout.sliders[0].len) == (0, 1)
 
 
 def test_file_stems_are_safe():

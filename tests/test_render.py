@@ -315,6 +315,32 @@ def test_skeleton_figure(walk):
         skeleton_figure(walk[:, :3])
 
 
+def test_skeleton_figure_follows_the_body(walk):
+    """The default view is a 2.2 m box centred on the root that each frame moves along (plot x, y are
+    the data's z, x); "path" keeps one box around the whole motion."""
+    from salad.render.figures import BODY_BOX
+
+    far = walk.copy()
+    far[..., 2] += np.linspace(0, 10, len(walk))[:, None]        # a 10 m walk
+    fig = skeleton_figure(far, fps=20)
+    for k in (0, len(far) - 1):
+        scene = fig.frames[k].layout.scene
+        x0, x1 = scene.xaxis.range
+        y0, y1 = scene.yaxis.range
+        assert x1 - x0 == pytest.approx(BODY_BOX) and y1 - y0 == pytest.approx(BODY_BOX)
+        assert (x0 + x1) / 2 == pytest.approx(far[k, 0, 2], abs=1e-5)
+        assert (y0 + y1) / 2 == pytest.approx(far[k, 0, 0], abs=1e-5)
+    assert tuple(fig.layout.scene.xaxis.range) == tuple(fig.frames[0].layout.scene.xaxis.range)
+    # every part of the legend, the slider ticking only its labelled steps
+    assert len([t for t in fig.data if t.showlegend is not False]) == 8
+    assert fig.layout.sliders[0].minorticklen == 0
+    whole = skeleton_figure(far, fps=20, view="path")
+    x0, x1 = whole.layout.scene.xaxis.range
+    assert x1 - x0 > 10 and whole.frames[5].layout.scene.xaxis.range is None
+    with pytest.raises(ValueError, match="view"):
+        skeleton_figure(far, view="close-up")
+
+
 def test_attention_figures(tmp_path):
     rng = np.random.default_rng(0)
     att = rng.random((4, 7, 30))
