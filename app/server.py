@@ -85,6 +85,7 @@ def launch(app: StudioApp, settings: Settings, block: bool = True) -> str:
     """Serve `app` on settings.host:port (no share link); returns the local URL. With
     block=False the server runs in background threads until app.close()."""
     from .ui.layout import CSS, THEME
+    from .ui.notes import NOTES_JS
 
     if app.studio is not None:
         app.workspace.start_janitor(settings.prune_every_s)
@@ -100,5 +101,5 @@ def launch(app: StudioApp, settings: Settings, block: bool = True) -> str:
         server_name=settings.host, server_port=settings.port, share=False, prevent_thread_lock=not block,
         show_error=True, allowed_paths=allowed, max_file_size=MAX_UPLOAD, ssr_mode=False, pwa=False,
         mcp_server=False, enable_monitoring=False, quiet=True, theme=THEME, css=CSS,
-        footer_links=["api"], state_session_capacity=1000)
+        footer_links=["api"], state_session_capacity=1000, js=NOTES_JS)
     return url

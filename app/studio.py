@@ -52,8 +52,10 @@ def _save_npz(path: Path, **arrays) -> Path:
 
 
 def save_motion(motion, folder: Path, stem: str, prefix: str = "") -> dict[str, Path]:
-    """NPY joints, NPY features, NPZ (both) and BVH of a motion; keys carry `prefix`."""
-    files = {f"{prefix}{ext}": motion.save(folder / f"{stem}.{ext}") for ext in ("npy", "npz", "bvh")}
+    """NPY joints, NPY features, NPZ (both) and BVH of a motion; keys carry `prefix`. The two NPY
+    files end in _joints / _features: a download list that shortens long names keeps their ends."""
+    files = {f"{prefix}{ext}": motion.save(folder / f"{stem}{'_joints' if ext == 'npy' else ''}.{ext}")
+             for ext in ("npy", "npz", "bvh")}
     files[f"{prefix}features"] = atomic_write(folder / f"{stem}_features.npy",
                                              lambda f: np.save(f, motion.features.astype(np.float32)))
     return files

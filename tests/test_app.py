@@ -70,7 +70,7 @@ def test_generate_returns_video_figure_and_files(client, pipe):
     assert skeleton["type"] == "plotly"
     fig = json.loads(skeleton["plot"])
     steps = fig["layout"]["sliders"][0]["steps"]
-    assert len(steps) == 32 and steps[5]["method"] == "restyle" and not fig.get("frames")
+    assert len(steps) == 32 and steps[5]["method"] == "update" and not fig.get("frames")
     assert "happily" in summary and "32 frames" in summary and "seed 3" in summary
     names = [Path(f).name for f in files]
     stem = "a-person-waves-their-right-hand-happily_seed3"

@@ -15,7 +15,7 @@ from ..settings import (
     DEFAULT_CFG, DEFAULT_PATH_SPEED, DEFAULT_SECONDS, DEFAULT_STEPS, DEFAULT_STRENGTH, MAX_CFG, MAX_PATH_SPEED,
     MAX_SEED, MAX_STEPS, MAX_STRENGTH, MAX_UPLOAD_BYTES, SECONDS_STEP,
 )
-from .generate_panel import MIN_SECONDS, foot_lock_checkbox
+from .generate_panel import CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, foot_lock_checkbox
 
 INTRO = ("Generate a motion that also meets joint position targets, by guiding the sampling "
          "(no retraining). Targets are in metres, Y up, the character starting at the origin facing +Z "
@@ -73,7 +73,7 @@ def build_control_panel(max_seconds: float, examples: list[str]) -> ControlPanel
     longest = max(MIN_SECONDS, float(max_seconds))
     gr.Markdown(INTRO)
     with gr.Row(equal_height=False):
-        with gr.Column(scale=2, min_width=320):
+        with gr.Column(scale=2, min_width=CONTROLS_MIN_WIDTH):
             prompt = gr.Textbox(label="Prompt", lines=2, max_lines=4, max_length=MAX_PROMPT_CHARS,
                                 value="a person walks forward", elem_id="control-prompt")
             task = gr.Radio([(label, key) for key, label in TASKS.items()], value="path", label="Targets",
@@ -108,7 +108,7 @@ def build_control_panel(max_seconds: float, examples: list[str]) -> ControlPanel
             button = gr.Button("Generate with control", variant="primary", elem_id="control-button")
             preview = gr.Plot(initial_preview(seconds.value, speed.value), label="The targets, from above",
                               elem_id="control-preview")
-        with gr.Column(scale=3, min_width=360):
+        with gr.Column(scale=3, min_width=RESULTS_MIN_WIDTH):
             gr.Markdown("**Guided motion**: targets in green, the target path on the floor",
                         elem_classes="video-caption")
             video = gr.Video(label="Guided motion", show_label=False, autoplay=True, loop=True, interactive=False,

@@ -232,9 +232,12 @@ class Handlers:
             raise ValueError("no test clips are offered: start the studio with --clips DIR (a dataset build)")
         return self.clips.caption(clip), None
 
-    @staticmethod
-    def real_upload():
-        """A file was uploaded: it replaces a picked test clip."""
+    def real_upload(self, upload=None):
+        """A file was uploaded: it is read now, so that a file the edit could not use is reported at
+        once rather than on pressing Edit, and it replaces a picked test clip."""
+        up = real_edit.upload_path(upload, self.studio.workspace.gradio_cache)
+        if up is not None:
+            real_edit.read_upload(up.path, up.name)
         return ""
 
     def edit_real(self, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion, steps,

@@ -26,8 +26,14 @@ CSS = """
 #summary, #edit-summary, #control-summary, #real-summary { min-height: 1.5em; }
 #motion-video video, #word-video video, #edit-video video, #control-video video, #real-video video {
   object-fit: contain; }
-.video-caption { margin-bottom: -8px; }
+/* Captions take their own line height: as flex items with overflow:auto they were squeezed and clipped. */
+div.block.video-caption { flex: none; overflow: visible !important; margin-bottom: -4px; }
+.files-status { flex: none; min-height: 2.6em; }
+/* A long download name loses its start rather than its end, which tells _joints.npy from _features.npy. */
+.file-preview .filename .stem { direction: rtl; text-align: left; }
 footer { display: none !important; }
+.salad-note { margin-top: 4px; padding: 4px 8px; border-radius: 6px; background: #fff4d6; color: #6b4b00;
+  font-size: 0.85rem; line-height: 1.35; }
 """
 THEME = gr.themes.Soft(primary_hue="indigo", secondary_hue="green")
 LICENCE_NOTE = ("The embedded model is trained on the Bandai-Namco Research Motion datasets "
@@ -131,7 +137,7 @@ def _wire_edit(h: dict, ed, state, settings: Settings) -> None:
                    api_name="edit", preprocess=False, concurrency_id="model", show_progress_on=[ed.video],
                    concurrency_limit=settings.concurrency, trigger_mode="once")
     edited.success(h["edit_files"], [state], ed.downloads, api_name="edit_files", preprocess=False,
-                   concurrency_id="views", show_progress="minimal")
+                   concurrency_id="views", show_progress="minimal", show_progress_on=[ed.files_status])
     ed.word.input(h["edit_attention"], [ed.word, state], [ed.source_heatmap, ed.edited_heatmap],
                   api_name="edit_attention", preprocess=False, concurrency_id="views", trigger_mode="always_last")
 
@@ -169,7 +175,9 @@ def _wire_real(h: dict, real, state, settings: Settings) -> None:
     # user actions only (.input / .upload): the updates these make must not set each other off
     real.clip.input(h["real_clip"], real.clip, [real.source, real.upload], api_name="real_clip", preprocess=False,
                     **quick)
-    real.upload.upload(h["real_upload"], None, real.clip, api_name="real_upload", **quick)
+    # queued: the page shows an error toast for queued events only, and the file is read (checked) here
+    real.upload.upload(h["real_upload"], real.upload, real.clip, api_name="real_upload", preprocess=False,
+                       concurrency_id="views", show_progress="hidden", api_visibility="undocumented")
     gr.on([real.button.click], h["edit_real"], inputs=real.inputs + [state],
           outputs=[state, real.video, real.summary, real.downloads], api_name="edit_real", preprocess=False,
           concurrency_id="model", show_progress_on=[real.video], concurrency_limit=settings.concurrency,
