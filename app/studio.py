@@ -292,6 +292,30 @@ class Studio:
 
         return result.cached(("edit downloads",), make)
 
+    # ------------------------------------------------------------ downloads
+    def downloads(self, result: Result, progress: Progress = quiet) -> list[Path]:
+        """Every download of a result, in the order the page lists them."""
+        if result.kind == "edit":
+            return self.edit_downloads(result, progress)
+        keys = {"generate": ("mp4", "bvh", "npy", "features", "npz"),
+                "control": ("mp4", "bvh", "npy", "features", "npz", "signal"),
+                "real": ("mp4", "bvh", "npy", "features")}[result.kind]
+        return [result.files[k] for k in keys]
+
+    @staticmethod
+    def in_bvh_units(result: Result, paths: list[Path], units: str) -> list[Path]:
+        """`paths` (downloads of `result`) with its BVH files in `units`: the files as saved, in
+        centimetres, or copies in metres (*_m.bvh) written beside them on first use."""
+        if units == "cm":
+            return list(paths)
+        swap = {}
+        for key, motion in (("bvh", result.motion), ("edited_bvh", result.motion), ("source_bvh", result.source)):
+            cm = result.files.get(key)
+            if cm is not None and motion is not None:
+                swap[cm] = result.cached(("bvh", key, units), lambda cm=cm, motion=motion: motion.save(
+                    cm.with_name(f"{cm.stem}_{units}.bvh"), bvh_units=units))
+        return [swap.get(p, p) for p in paths]
+
     # ------------------------------------------------------------ guided control
     def control(self, session: Session, req: ControlRequest, signal, progress: Progress = quiet) -> Result:
         """Sample a motion guided by `signal`, save it with its signal, and render it with the

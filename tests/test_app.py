@@ -92,6 +92,25 @@ def test_generate_returns_video_figure_and_files(client, pipe):
     assert heatmap is None and word_video is None
 
 
+def test_bvh_downloads_come_in_the_chosen_units(client):
+    """Centimetres as saved; metres written beside them on demand and listed in their place."""
+    before = client.predict("m", api_name="/bvh_units")
+    assert before is None or before == [] or isinstance(before, (list, dict)), "no motion yet: nothing to list"
+    out = generate(client, "a person walks forward", seconds=1.6, seed=5)
+    cm = next(Path(f) for f in out[3] if f.endswith(".bvh"))
+    files = client.predict("m", api_name="/bvh_units")
+    names = [Path(f).name for f in files]
+    assert names[1] == cm.stem + "_m.bvh" and len(names) == 5 and names[2].endswith("_joints.npy")
+    in_m, in_cm = load_bvh(files[1]), load_bvh(cm)
+    np.testing.assert_allclose(in_m.joints, in_cm.joints, atol=1e-4)
+    offsets = lambda path: [float(x) for line in Path(path).read_text().splitlines()  # noqa: E731
+                            if line.strip().startswith("OFFSET") for x in line.split()[1:]]
+    np.testing.assert_allclose(np.array(offsets(cm)), 100 * np.array(offsets(files[1])), atol=1e-3)
+    assert Path(client.predict("cm", api_name="/bvh_units")[1]).name == cm.name
+    with pytest.raises(AppError, match="BVH units must be one of cm, m"):
+        client.predict("inch", api_name="/bvh_units")
+
+
 def test_foot_lock_switch_reaches_the_pipeline_and_the_summary(client, pipe):
     prompt, seconds, seed, steps = "a person walks forward", 1.2, 4, 5
     on = generate(client, prompt, seconds=seconds, seed=seed, steps=steps, foot_lock=True)

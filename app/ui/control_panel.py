@@ -15,7 +15,7 @@ from ..settings import (
     DEFAULT_CFG, DEFAULT_PATH_SPEED, DEFAULT_SECONDS, DEFAULT_STEPS, DEFAULT_STRENGTH, MAX_CFG, MAX_PATH_SPEED,
     MAX_SEED, MAX_STEPS, MAX_STRENGTH, MAX_UPLOAD_BYTES, SECONDS_STEP,
 )
-from .generate_panel import CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, foot_lock_checkbox
+from .generate_panel import CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox
 
 INTRO = ("Generate a motion that also meets joint position targets, by guiding the sampling "
          "(no retraining). Targets are in metres, Y up, the character starting at the origin facing +Z "
@@ -58,6 +58,7 @@ class ControlPanel:
     top_view: gr.Plot
     summary: gr.Markdown
     downloads: gr.File
+    bvh_units: gr.Dropdown
 
     @property
     def inputs(self) -> list:
@@ -115,8 +116,9 @@ def build_control_panel(max_seconds: float, examples: list[str]) -> ControlPanel
                              elem_id="control-video")
             top_view = gr.Plot(label="Target and achieved pelvis path, from above", elem_id="control-top-view")
             summary = gr.Markdown(elem_id="control-summary")
+            bvh_units = bvh_units_dropdown("control-bvh-units")
             downloads = gr.File(label="Downloads: MP4, BVH, NPY joints and features, NPZ, control signal (NPZ)",
                                 file_count="multiple", interactive=False, elem_id="control-downloads")
     return ControlPanel(prompt, task, path_group, preset, seconds, speed, upload_group, upload, example, upload_help,
                         keyframes, strength, seed, steps, cfg, foot_lock, button, preview, video, top_view, summary,
-                        downloads)
+                        downloads, bvh_units)

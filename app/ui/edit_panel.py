@@ -13,7 +13,7 @@ from ..settings import (
     DEFAULT_CFG, DEFAULT_REWEIGHT, DEFAULT_SECONDS, DEFAULT_SELF_INJECT, DEFAULT_STEPS, DEFAULT_TAU, MAX_CFG,
     MAX_REWEIGHT, MAX_SEED, MAX_STEPS, SECONDS_STEP,
 )
-from .generate_panel import CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, foot_lock_checkbox
+from .generate_panel import CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox
 
 INTRO = ("Edit a motion without retraining: the source prompt and the edit are sampled together from the same "
          "noise, and the edit changes only the cross-attention between words and body parts.")
@@ -61,6 +61,7 @@ class EditPanel:
     source_heatmap: gr.Plot
     edited_heatmap: gr.Plot
     downloads: gr.File
+    bvh_units: gr.Dropdown
     files_status: gr.Markdown
 
     @property
@@ -123,6 +124,7 @@ def build_edit_panel(max_seconds: float) -> EditPanel:
             with gr.Row(equal_height=True):
                 source_heatmap = gr.Plot(label="Source", elem_id="edit-source-heatmap")
                 edited_heatmap = gr.Plot(label="Edited", elem_id="edit-edited-heatmap")
+            bvh_units = bvh_units_dropdown("edit-bvh-units")
             # The remaining downloads' rendering shows its progress on this line: on the file list itself
             # the progress bar covered the files.
             files_status = gr.Markdown(FILES_NOTE, elem_id="edit-files-status", elem_classes="files-status")
@@ -131,4 +133,4 @@ def build_edit_panel(max_seconds: float) -> EditPanel:
                                 elem_id="edit-downloads")
     return EditPanel(source, mode, mode_help, target, tau, reweight_word, reweight_scale, mirror, self_inject,
                      auto_length, seconds, seed, steps, cfg, sampler, foot_lock, button, video, summary, word,
-                     source_heatmap, edited_heatmap, downloads, files_status)
+                     source_heatmap, edited_heatmap, downloads, bvh_units, files_status)

@@ -27,6 +27,13 @@ def foot_lock_checkbox(elem_id: str) -> gr.Checkbox:
     return gr.Checkbox(value=True, label=FOOT_LOCK_LABEL, info=FOOT_LOCK_INFO, elem_id=elem_id)
 
 
+def bvh_units_dropdown(elem_id: str) -> gr.Dropdown:
+    """The length unit of a tab's BVH downloads: centimetres (what Blender, MotionBuilder and most
+    BVH readers assume) or metres."""
+    return gr.Dropdown([("centimetres (cm)", "cm"), ("metres (m)", "m")], value="cm", label="BVH units",
+                       min_width=160, elem_id=elem_id)
+
+
 @dataclass
 class GeneratePanel:
     prompt: gr.Textbox
@@ -42,6 +49,7 @@ class GeneratePanel:
     skeleton: gr.Plot
     summary: gr.Markdown
     downloads: gr.File
+    bvh_units: gr.Dropdown
 
     @property
     def inputs(self) -> list:
@@ -86,8 +94,9 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
                     gr.Markdown(PLOT_CAPTION, elem_classes="video-caption", elem_id="skeleton-caption")
                     skeleton = gr.Plot(label="3D view", show_label=False, elem_id="skeleton-plot")
             summary = gr.Markdown(elem_id="summary")
-            downloads = gr.File(label="Downloads: MP4 video, BVH (cm), NPY joints, NPY features, "
+            bvh_units = bvh_units_dropdown("bvh-units")
+            downloads = gr.File(label="Downloads: MP4 video, BVH, NPY joints, NPY features, "
                                       "NPZ joints + features",
                                 file_count="multiple", interactive=False, elem_id="downloads")
     return GeneratePanel(prompt, auto_length, seconds, seed, steps, cfg, sampler, foot_lock, button, video,
-                         skeleton, summary, downloads)
+                         skeleton, summary, downloads, bvh_units)

@@ -15,8 +15,8 @@ from ..session import Result, Session
 from ..settings import DEFAULT_TAU
 from ..studio import Studio
 from ..validation import (
-    AttentionRequest, control_signal, parse_attention, parse_control, parse_edit, parse_generate, parse_real_edit,
-    parse_word,
+    AttentionRequest, control_signal, parse_attention, parse_bvh_units, parse_control, parse_edit, parse_generate,
+    parse_real_edit, parse_word,
 )
 from .edit_panel import MODE_HELP
 from .control_panel import UPLOAD_HELP
@@ -88,7 +88,7 @@ class Handlers:
         session = self.studio.session(state, request.session_hash)
         result = self.studio.generate(session, req, _gr_progress(progress))
         maps = result.motion.attention
-        files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "features", "npz")]
+        files = [str(p) for p in self.studio.downloads(result)]
         return (
             session,
             str(result.files["mp4"]),
@@ -215,7 +215,7 @@ class Handlers:
                                     examples_dir=self.studio.control_examples)
         session = self.studio.session(state, request.session_hash)
         result = self.studio.control(session, req, signal, _gr_progress(progress))
-        files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "features", "npz", "signal")]
+        files = [str(p) for p in self.studio.downloads(result)]
         return session, str(result.files["mp4"]), self.studio.control_figure(result), control_markdown(result), files
 
     # ------------------------------------------------------------ real motions
@@ -247,8 +247,22 @@ class Handlers:
                                       upload_root=self.studio.workspace.gradio_cache, clips=self.clips)
         session = self.studio.session(state, request.session_hash)
         result = real_edit.edit_real(self.studio, session, req, motion, _gr_progress(progress))
-        files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "features")]
+        files = [str(p) for p in self.studio.downloads(result)]
         return session, str(result.files["mp4"]), real_markdown(result), files
+
+    # ------------------------------------------------------------ downloads
+    def bvh_units(self, kind: str):
+        """The handler that lists the downloads of the session's latest `kind` result with its BVH
+        files in the chosen units (left as they are while there is no such result)."""
+        def handler(units, state, request: gr.Request):
+            units = parse_bvh_units(units)
+            result = state.latest(kind) if isinstance(state, Session) else None
+            if result is None:
+                return gr.File()
+            self.studio.session(state, request.session_hash)
+            return [str(p) for p in self.studio.in_bvh_units(result, self.studio.downloads(result), units)]
+        handler.__name__ = f"bvh_units_{kind}"
+        return handler
 
     def unload(self, request: gr.Request) -> None:
         # The tab is gone: its files go now; the session's state follows when Gradio drops it.
@@ -263,4 +277,5 @@ def guard_all(handlers: Handlers) -> dict:
     names = ("length_mode", "generate", "attention", "attention_video", "edit_mode", "edit_words", "edit",
              "edit_files", "edit_attention", "control_task", "control_preview", "control", "real_mode", "real_clip",
              "real_upload", "edit_real")
-    return {n: guarded(getattr(handlers, n)) for n in names} | {"unload": handlers.unload}
+    units = {f"bvh_units_{kind}": guarded(handlers.bvh_units(kind)) for kind in ("generate", "edit", "control", "real")}
+    return {n: guarded(getattr(handlers, n)) for n in names} | units | {"unload": handlers.unload}
