@@ -49,10 +49,17 @@ def _load(settings: Settings):
         return None, f"{type(exc).__name__}: {exc}"
 
 
+def _gradio_cache_key(path: Path) -> str:
+    """The folder name Gradio gives the cached copy of a file it serves (gradio.processing_utils.save_file_to_cache)."""
+    from gradio.processing_utils import hash_file
+
+    return hash_file(path)
+
+
 def create_app(settings: Settings, pipe=None) -> StudioApp:
     """Build the studio (or, without a loadable model, the error page) around a fresh workspace.
     `pipe` skips loading when a pipeline is already at hand."""
-    workspace = Workspace(settings.tmp_dir, ttl_s=settings.session_ttl_s)
+    workspace = Workspace(settings.tmp_dir, ttl_s=settings.session_ttl_s, cache_key=_gradio_cache_key)
     # Gradio copies every file it serves into its cache; keep that cache inside our root.
     os.environ["GRADIO_TEMP_DIR"] = str(workspace.gradio_cache)
     try:

@@ -228,6 +228,42 @@ def test_eight_simultaneous_sessions_get_their_own_motions(server, pipe, tmp_pat
     print(f"8 sessions served in {elapsed:.1f} s")
 
 
+def test_a_sessions_files_their_served_copies_and_its_uploads_go_when_it_ends(server, tmp_path, monkeypatch):
+    """A tab that closes ends its session (its heartbeat stops): the session's folder, the copies
+    Gradio serves of its files and the files it uploaded are removed at once, and their URLs fail."""
+    from gradio.processing_utils import hash_file
+    from gradio_client import handle_file
+
+    monkeypatch.setenv("GRADIO_HEARTBEAT_INTERVAL", "0.5")   # notice the closed connection quickly
+    url, studio_app = server
+    ws = studio_app.workspace
+    session = "a-session-that-ends"
+    np.save(tmp_path / "my-own-walk.npy", synthetic_walk(40))
+    c = Client(url, verbose=False, download_files=str(tmp_path / "dl"), analytics_enabled=False)
+    c.session_hash = session
+    try:
+        with httpx.stream("GET", f"{url}gradio_api/heartbeat/{session}", timeout=60) as beat:
+            lines = beat.iter_lines()     # kept: dropping the iterator closes the connection
+            next(lines)                   # the session is open, as a tab's
+            generate(c, "a person walks forward", seconds=1.6, seed=11)
+            assert c.predict(handle_file(str(tmp_path / "my-own-walk.npy")), api_name="/real_upload") == ""
+            folder = ws.sessions / ws.session_key(session)
+            served = [ws.gradio_cache / hash_file(f) / f.name for f in folder.rglob("*") if f.is_file()]
+            uploads = list(ws.gradio_cache.rglob("my-own-walk.npy"))
+            assert len(served) == 5 and all(p.is_file() for p in served) and len(uploads) == 1
+            links = [f"{url}gradio_api/file={p}" for p in served]
+            assert all(httpx.get(link).status_code == 200 for link in links)
+            c.close()          # the client keeps a heartbeat of its own for the session it uses
+        deadline = time.time() + 30
+        while (folder.exists() or any(p.exists() for p in served + uploads)) and time.time() < deadline:
+            time.sleep(0.2)
+        assert not folder.exists() and not any(p.exists() for p in served + uploads)
+        # Gradio refuses a path it no longer holds (403), as it refuses any path it never served
+        assert {httpx.get(link).status_code for link in links} <= {403, 404}
+    finally:
+        c.close()
+
+
 def test_only_the_studios_outputs_are_served(server, client):
     url, studio_app = server
     generate(client, "a person bows", seconds=0.8, seed=5)

@@ -78,6 +78,12 @@ class Handlers:
         self.studio.session(state, request.session_hash)     # marks the session as in use
         return state.current
 
+    def _note_upload(self, upload, request: gr.Request | None) -> None:
+        """An uploaded file a request used goes when its session ends."""
+        path = upload.get("path") if isinstance(upload, dict) else upload
+        if isinstance(path, str) and request is not None and request.session_hash:
+            self.studio.workspace.note_upload(request.session_hash, path)
+
     @staticmethod
     def length_mode(auto_length):
         return gr.Slider(interactive=not bool(auto_length))
@@ -197,9 +203,11 @@ class Handlers:
         return control_signal(self.studio.pipe, task, preset, seconds, speed, upload, example, keyframes, base=base,
                               upload_root=self.studio.workspace.gradio_cache, examples_dir=self.studio.control_examples)
 
-    def control_preview(self, task, preset, seconds, speed, upload, example, keyframes, state):
+    def control_preview(self, task, preset, seconds, speed, upload, example, keyframes, state,
+                        request: gr.Request = None):
         """The targets seen from above, or why there are none yet (never an error toast:
         the inputs may still be half filled in)."""
+        self._note_upload(upload, request)
         try:
             signal, _, _ = self._signal(task, preset, seconds, speed, upload, example, keyframes, state)
         except ValueError as exc:
@@ -209,6 +217,7 @@ class Handlers:
     def control(self, prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed, steps, cfg,
                 foot_lock, state, request: gr.Request, progress=gr.Progress()):
         base = state.current if isinstance(state, Session) else None
+        self._note_upload(upload, request)
         req, signal = parse_control(self.studio.pipe, prompt, task, preset, seconds, speed, upload, example, keyframes,
                                     strength, seed, steps, cfg, foot_lock, base=base,
                                     upload_root=self.studio.workspace.gradio_cache,
@@ -232,9 +241,10 @@ class Handlers:
             raise ValueError("no test clips are offered: start the studio with --clips DIR (a dataset build)")
         return self.clips.caption(clip), None
 
-    def real_upload(self, upload=None):
+    def real_upload(self, upload=None, request: gr.Request = None):
         """A file was uploaded: it is read now, so that a file the edit could not use is reported at
         once rather than on pressing Edit, and it replaces a picked test clip."""
+        self._note_upload(upload, request)
         up = real_edit.upload_path(upload, self.studio.workspace.gradio_cache)
         if up is not None:
             real_edit.read_upload(up.path, up.name)
@@ -242,6 +252,7 @@ class Handlers:
 
     def edit_real(self, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion, steps,
                   cfg, foot_lock, state, request: gr.Request, progress=gr.Progress()):
+        self._note_upload(upload, request)
         req, motion = parse_real_edit(self.studio.pipe, upload, clip, source, mode, target, reweight_word,
                                       reweight_scale, mirror, inversion, steps, cfg, foot_lock,
                                       upload_root=self.studio.workspace.gradio_cache, clips=self.clips)
@@ -265,7 +276,8 @@ class Handlers:
         return handler
 
     def unload(self, request: gr.Request) -> None:
-        # The tab is gone: its files go now; the session's state follows when Gradio drops it.
+        # The tab is gone: its files (with Gradio's served copies and its uploads) go now; the
+        # session's state follows when Gradio drops it.
         try:
             self.studio.workspace.remove_session(request.session_hash)
         except Exception:   # a failed clean-up is retried by the janitor
