@@ -192,6 +192,7 @@ def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = Non
         title=dict(text=title or "", x=0.02, font=dict(family=FONT, size=16)),
         font=dict(family=FONT), paper_bgcolor="white", margin=dict(l=0, r=0, t=40 if title else 10, b=0),
         # Above the scene, wrapping into rows as the width requires; Plotly grows the top margin to fit.
+        modebar=dict(orientation="v"),     # down the right side, off the legend
         legend=dict(orientation="h", y=1.0, x=0.0, xanchor="left", yanchor="bottom",
                     itemclick=False, itemdoubleclick=False, font=dict(size=11)),
         scene=dict(
