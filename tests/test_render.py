@@ -82,6 +82,18 @@ def test_title_and_tint_change_pixels(walk):
     assert np.abs(plain[body].astype(int) - tinted[body]).mean() > 20
 
 
+def test_cjk_text_is_drawn_in_a_cjk_font_when_one_is_installed():
+    from salad.render.overlay import _CJK_FONTS, font, text_font
+
+    assert text_font("a person waves", "bold", 20) is font("bold", 20)
+    if not any(path.is_file() for path in _CJK_FONTS):
+        pytest.skip("no CJK font installed (apt install fonts-wqy-zenhei)")
+    cjk = text_font("挥手 a person waves", "bold", 20)
+    # a font without the glyphs draws both characters as the same box
+    wave, hand = (np.asarray(cjk.getmask(c)) for c in "挥手")
+    assert wave.shape != hand.shape or (wave != hand).any()
+
+
 def test_rendering_is_repeatable_across_calls(walk):
     first = render_frames(walk[:4], size=SIZE)
     tg = walk[:4] + 0.2
