@@ -401,6 +401,14 @@ def test_a_clamped_number_and_a_cut_prompt_are_said_at_once(studio_url, page):
     seconds.fill("2")
     seconds.press("Enter")
     note.wait_for(state="detached")
+    # a number box's limits too: the seed
+    page.locator("#generate-tab").get_by_text("Sampling", exact=True).click()
+    seed = page.locator("#seed input[type=number]")
+    seed.wait_for()
+    seed.fill("-5")
+    seed.press("Enter")
+    page.locator("#seed .salad-note").wait_for()
+    assert seed.input_value() == "0" and "set to 0" in page.locator("#seed .salad-note").inner_text()
     # the prompt box takes 300 characters: a longer paste is cut, and the page says so
     page.evaluate("""() => { const a = document.querySelector('#prompt textarea'); a.focus();
         const data = new DataTransfer(); data.setData('text', 'a person walks forward '.repeat(20));

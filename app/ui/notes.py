@@ -1,6 +1,6 @@
 """What the page says the moment it changes what was typed (run by the browser on load): a
-number typed outside a slider's range is put back inside it, where the box would otherwise keep
-showing the typed number while the slider sends the clamped one; text pasted or typed past a
+number typed outside a slider's (or a number box's) range is put back inside it, where the box
+would otherwise keep showing the typed number while the slider sends the clamped one; text pasted or typed past a
 box's character limit is cut, which the browser otherwise does silently. Both leave a note
 under the box (class salad-note), which goes when the next value fits."""
 
@@ -31,11 +31,12 @@ NOTES_JS = r"""
 
   function checkNumber(box) {
     const block = box.closest(".block");
-    const range = block && block.querySelector("input[type=range]");
-    if (!range) return;
+    // a slider's limits are on its range input; a number box's on the box itself
+    const limits = block && (block.querySelector("input[type=range]") || box);
+    if (!limits || limits.min === "" || limits.max === "") return;
     const raw = box.value.trim();
     const value = Number(raw);
-    const lo = Number(range.min), hi = Number(range.max);
+    const lo = Number(limits.min), hi = Number(limits.max);
     if (raw === "" || !Number.isFinite(value) || (value >= lo && value <= hi)) {
       clearNote(block);
       return;
