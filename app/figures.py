@@ -2,7 +2,8 @@
 
 Gradio draws a Plotly figure with `Plotly.react(data, layout, config)`, which drops
 `figure.frames`; slider steps that `animate` to named frames then do nothing. Slider
-steps that `restyle` the traces with each frame's coordinates work without frames.
+steps that `restyle` the traces with each frame's coordinates (or `update` them, when the
+frame also moves the scene's box) work without frames.
 """
 from __future__ import annotations
 
@@ -10,9 +11,10 @@ COORDS = ("x", "y", "z")
 
 
 def frames_to_restyle_slider(fig):
-    """A figure whose slider animates through frames (each frame holding only new coordinates
-    for some traces) rewritten as one whose slider restyles those traces directly, without
-    frames; play/pause buttons, which need frames, are left out. Returns a new figure."""
+    """A figure whose slider animates through frames (each frame holding new coordinates for
+    some traces, and perhaps layout changes such as the scene's ranges) rewritten as one whose
+    slider restyles (updates) those traces and that layout directly, without frames; play/pause
+    buttons, which need frames, are left out and the slider takes their place. Returns a new figure."""
     import plotly.graph_objects as go
 
     if not fig.frames or not fig.layout.sliders:
@@ -34,10 +36,28 @@ def frames_to_restyle_slider(fig):
             # Lists, not arrays: plotly would send arrays base64-encoded, which restyle does not decode.
             update = {k: [_plain(getattr(d, k)) for d in frame.data] for k in COORDS}
             traces = list(frame.traces) if frame.traces is not None else list(range(len(frame.data)))
-            steps.append(dict(step, method="restyle", args=[update, traces]))
+            relayout = _dotted(frame.layout.to_plotly_json()) if frame.layout is not None else {}
+            if relayout:
+                # dotted keys, so that only the ranges change and the user's camera stays
+                steps.append(dict(step, method="update", args=[update, relayout, traces]))
+            else:
+                steps.append(dict(step, method="restyle", args=[update, traces]))
         slider["steps"] = steps
-    layout.pop("updatemenus", None)
+    if layout.pop("updatemenus", None):
+        for slider in layout.get("sliders", ()):
+            slider.update(x=0.0, len=1.0)
     return go.Figure(spec, _validate=False)
+
+
+def _dotted(spec: dict, prefix: str = "") -> dict:
+    """{"scene": {"xaxis": {"range": r}}} -> {"scene.xaxis.range": r}."""
+    out = {}
+    for key, value in spec.items():
+        if isinstance(value, dict) and value:
+            out |= _dotted(value, f"{prefix}{key}.")
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
 
 
 def _plain(values):

@@ -49,10 +49,17 @@ def _load(settings: Settings):
         return None, f"{type(exc).__name__}: {exc}"
 
 
+def _gradio_cache_key(path: Path) -> str:
+    """The folder name Gradio gives the cached copy of a file it serves (gradio.processing_utils.save_file_to_cache)."""
+    from gradio.processing_utils import hash_file
+
+    return hash_file(path)
+
+
 def create_app(settings: Settings, pipe=None) -> StudioApp:
     """Build the studio (or, without a loadable model, the error page) around a fresh workspace.
     `pipe` skips loading when a pipeline is already at hand."""
-    workspace = Workspace(settings.tmp_dir, ttl_s=settings.session_ttl_s)
+    workspace = Workspace(settings.tmp_dir, ttl_s=settings.session_ttl_s, cache_key=_gradio_cache_key)
     # Gradio copies every file it serves into its cache; keep that cache inside our root.
     os.environ["GRADIO_TEMP_DIR"] = str(workspace.gradio_cache)
     try:
@@ -85,6 +92,7 @@ def launch(app: StudioApp, settings: Settings, block: bool = True) -> str:
     """Serve `app` on settings.host:port (no share link); returns the local URL. With
     block=False the server runs in background threads until app.close()."""
     from .ui.layout import CSS, THEME
+    from .ui.notes import NOTES_JS
 
     if app.studio is not None:
         app.workspace.start_janitor(settings.prune_every_s)
@@ -100,5 +108,5 @@ def launch(app: StudioApp, settings: Settings, block: bool = True) -> str:
         server_name=settings.host, server_port=settings.port, share=False, prevent_thread_lock=not block,
         show_error=True, allowed_paths=allowed, max_file_size=MAX_UPLOAD, ssr_mode=False, pwa=False,
         mcp_server=False, enable_monitoring=False, quiet=True, theme=THEME, css=CSS,
-        footer_links=["api"], state_session_capacity=1000)
+        footer_links=["api"], state_session_capacity=1000, js=NOTES_JS)
     return url

@@ -52,8 +52,10 @@ def _save_npz(path: Path, **arrays) -> Path:
 
 
 def save_motion(motion, folder: Path, stem: str, prefix: str = "") -> dict[str, Path]:
-    """NPY joints, NPY features, NPZ (both) and BVH of a motion; keys carry `prefix`."""
-    files = {f"{prefix}{ext}": motion.save(folder / f"{stem}.{ext}") for ext in ("npy", "npz", "bvh")}
+    """NPY joints, NPY features, NPZ (both) and BVH of a motion; keys carry `prefix`. The two NPY
+    files end in _joints / _features: a download list that shortens long names keeps their ends."""
+    files = {f"{prefix}{ext}": motion.save(folder / f"{stem}{'_joints' if ext == 'npy' else ''}.{ext}")
+             for ext in ("npy", "npz", "bvh")}
     files[f"{prefix}features"] = atomic_write(folder / f"{stem}_features.npy",
                                              lambda f: np.save(f, motion.features.astype(np.float32)))
     return files
@@ -288,6 +290,30 @@ class Studio:
             return [result.files["mp4"], single] + [result.files[k] for k in order[1:]] + [npz, *map(Path, pngs)]
 
         return result.cached(("edit downloads",), make)
+
+    # ------------------------------------------------------------ downloads
+    def downloads(self, result: Result, progress: Progress = quiet) -> list[Path]:
+        """Every download of a result, in the order the page lists them."""
+        if result.kind == "edit":
+            return self.edit_downloads(result, progress)
+        keys = {"generate": ("mp4", "bvh", "npy", "features", "npz"),
+                "control": ("mp4", "bvh", "npy", "features", "npz", "signal"),
+                "real": ("mp4", "bvh", "npy", "features")}[result.kind]
+        return [result.files[k] for k in keys]
+
+    @staticmethod
+    def in_bvh_units(result: Result, paths: list[Path], units: str) -> list[Path]:
+        """`paths` (downloads of `result`) with its BVH files in `units`: the files as saved, in
+        centimetres, or copies in metres (*_m.bvh) written beside them on first use."""
+        if units == "cm":
+            return list(paths)
+        swap = {}
+        for key, motion in (("bvh", result.motion), ("edited_bvh", result.motion), ("source_bvh", result.source)):
+            cm = result.files.get(key)
+            if cm is not None and motion is not None:
+                swap[cm] = result.cached(("bvh", key, units), lambda cm=cm, motion=motion: motion.save(
+                    cm.with_name(f"{cm.stem}_{units}.bvh"), bvh_units=units))
+        return [swap.get(p, p) for p in paths]
 
     # ------------------------------------------------------------ guided control
     def control(self, session: Session, req: ControlRequest, signal, progress: StageProgress = quiet) -> Result:

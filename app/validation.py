@@ -149,6 +149,14 @@ def parse_attention(maps, word, layers, first_step, last_step) -> AttentionReque
     return AttentionRequest(word=parse_word(maps.words, word), layers=tuple(chosen), steps=(first - 1, last))
 
 
+BVH_UNITS = ("cm", "m")
+
+
+def parse_bvh_units(units) -> str:
+    """The length unit of the BVH downloads."""
+    return _choice("BVH units", units, BVH_UNITS)
+
+
 # ---------------------------------------------------------------- editing
 
 class _Edit:

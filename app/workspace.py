@@ -1,9 +1,10 @@
 """The studio's private temp root: one folder per browser/API session, pruned when idle.
 
 Layout: <root>/sessions/<key>/<motion id>/ for the files of each generated motion and
-<root>/gradio/ for Gradio's copies of the files it serves. The root belongs to one
-process (its pid is written inside) and is removed when the process ends; roots left by
-processes that died are removed by the next studio that starts.
+<root>/gradio/ for Gradio's copies of the files it serves (<content hash>/<name>) and of the
+files users upload. The root belongs to one process (its pid is written inside) and is
+removed when the process ends; roots left by processes that died are removed by the next
+studio that starts.
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 log = logging.getLogger("salad.studio")
 ROOT_PREFIX = "salad-studio-"
@@ -48,7 +50,10 @@ def remove_stale_roots(parent: Path) -> int:
 class Workspace:
     """Creates, touches and prunes per-session folders under a fresh private root."""
 
-    def __init__(self, parent: str | os.PathLike | None = None, ttl_s: float = 7200.0):
+    def __init__(self, parent: str | os.PathLike | None = None, ttl_s: float = 7200.0,
+                 cache_key: Callable[[Path], str] | None = None):
+        """`cache_key(file)`: the folder under gradio_cache that holds the served copy of a file
+        (Gradio names it by a hash of the content); None: served copies are left to Gradio."""
         parent = Path(parent or tempfile.gettempdir())
         if not parent.is_dir():
             raise ValueError(f"{parent}: the temp folder does not exist")
@@ -60,6 +65,9 @@ class Workspace:
         self.gradio_cache = self.root / "gradio"
         self.gradio_cache.mkdir()
         self.ttl_s = float(ttl_s)
+        self.cache_key = cache_key
+        self._uploads: dict[str, set[Path]] = {}     # session key -> uploaded files its requests used
+        self._lock = threading.Lock()
         self._stop = threading.Event()
         self._janitor: threading.Thread | None = None
 
@@ -75,8 +83,60 @@ class Workspace:
         os.utime(d)
         return d
 
+    def note_upload(self, session_hash: str, path) -> None:
+        """Remember that the session used the uploaded file `path` (one under gradio_cache), so that
+        it goes with the session."""
+        try:
+            p = Path(path).resolve()
+            p.relative_to(self.gradio_cache)
+        except (TypeError, ValueError, OSError):
+            return
+        with self._lock:
+            self._uploads.setdefault(self.session_key(session_hash), set()).add(p)
+
     def remove_session(self, session_hash: str) -> None:
-        shutil.rmtree(self.sessions / self.session_key(session_hash), ignore_errors=True)
+        """The session has ended: its folder goes, and with it the copies Gradio serves of its files
+        and the files it uploaded, unless another session holds the same content."""
+        key = self.session_key(session_hash)
+        folder = self.sessions / key
+        with self._lock:
+            uploads = self._uploads.pop(key, set())
+            kept = set().union(*self._uploads.values())
+        for d in self._served_copies(folder):
+            shutil.rmtree(d, ignore_errors=True)
+        for up in uploads - kept:
+            up.unlink(missing_ok=True)
+            try:
+                up.parent.rmdir()
+            except OSError:         # not empty, or already gone
+                pass
+        shutil.rmtree(folder, ignore_errors=True)
+
+    def _served_copies(self, folder: Path) -> list[Path]:
+        """The folders under gradio_cache holding served copies of the files in `folder` and of no
+        other session's file. Only other files of a size one of ours has can share our content,
+        so only those are hashed."""
+        if self.cache_key is None or not folder.is_dir():
+            return []
+        mine = _files(folder)
+        sizes = {size for _, size in mine}
+        try:
+            others = [d for d in self.sessions.iterdir() if d != folder]
+        except OSError:
+            others = []
+        shared = {self._key(p) for d in others for p, size in _files(d) if size in sizes}
+        found = []
+        for p, _ in mine:
+            key = self._key(p)
+            if key is not None and key not in shared and (self.gradio_cache / key).is_dir():
+                found.append(self.gradio_cache / key)
+        return found
+
+    def _key(self, path: Path) -> str | None:
+        try:
+            return self.cache_key(path)
+        except OSError:             # removed meanwhile
+            return None
 
     def prune(self, now: float | None = None) -> int:
         """Remove session folders not used for longer than the TTL; returns how many."""
@@ -108,3 +168,15 @@ class Workspace:
     def close(self) -> None:
         self._stop.set()
         shutil.rmtree(self.root, ignore_errors=True)
+
+
+def _files(folder: Path) -> list[tuple[Path, int]]:
+    """(file, size) of every file under `folder` that is still there when looked at."""
+    out = []
+    for p in folder.rglob("*"):
+        try:
+            if p.is_file():
+                out.append((p, p.stat().st_size))
+        except OSError:
+            continue
+    return out

@@ -70,11 +70,11 @@ def test_generate_returns_video_figure_and_files(client, pipe):
     assert skeleton["type"] == "plotly"
     fig = json.loads(skeleton["plot"])
     steps = fig["layout"]["sliders"][0]["steps"]
-    assert len(steps) == 32 and steps[5]["method"] == "restyle" and not fig.get("frames")
+    assert len(steps) == 32 and steps[5]["method"] == "update" and not fig.get("frames")
     assert "happily" in summary and "32 frames" in summary and "seed 3" in summary
     names = [Path(f).name for f in files]
     stem = "a-person-waves-their-right-hand-happily_seed3"
-    assert names == [f"{stem}.mp4", f"{stem}.bvh", f"{stem}.npy", f"{stem}_features.npy", f"{stem}.npz"]
+    assert names == [f"{stem}.mp4", f"{stem}.bvh", f"{stem}_joints.npy", f"{stem}_features.npy", f"{stem}.npz"]
     by_ext = {Path(f).suffix: Path(f) for f in files if not f.endswith("_features.npy")}
     joints = np.load(by_ext[".npy"])
     np.testing.assert_array_equal(np.load(files[3]).shape, (32, 263))
@@ -92,13 +92,32 @@ def test_generate_returns_video_figure_and_files(client, pipe):
     assert heatmap is None and word_video is None
 
 
+def test_bvh_downloads_come_in_the_chosen_units(client):
+    """Centimetres as saved; metres written beside them on demand and listed in their place."""
+    before = client.predict("m", api_name="/bvh_units")
+    assert before is None or before == [] or isinstance(before, (list, dict)), "no motion yet: nothing to list"
+    out = generate(client, "a person walks forward", seconds=1.6, seed=5)
+    cm = next(Path(f) for f in out[3] if f.endswith(".bvh"))
+    files = client.predict("m", api_name="/bvh_units")
+    names = [Path(f).name for f in files]
+    assert names[1] == cm.stem + "_m.bvh" and len(names) == 5 and names[2].endswith("_joints.npy")
+    in_m, in_cm = load_bvh(files[1]), load_bvh(cm)
+    np.testing.assert_allclose(in_m.joints, in_cm.joints, atol=1e-4)
+    offsets = lambda path: [float(x) for line in Path(path).read_text().splitlines()  # noqa: E731
+                            if line.strip().startswith("OFFSET") for x in line.split()[1:]]
+    np.testing.assert_allclose(np.array(offsets(cm)), 100 * np.array(offsets(files[1])), atol=1e-3)
+    assert Path(client.predict("cm", api_name="/bvh_units")[1]).name == cm.name
+    with pytest.raises(AppError, match="BVH units must be one of cm, m"):
+        client.predict("inch", api_name="/bvh_units")
+
+
 def test_foot_lock_switch_reaches_the_pipeline_and_the_summary(client, pipe):
     prompt, seconds, seed, steps = "a person walks forward", 1.2, 4, 5
     on = generate(client, prompt, seconds=seconds, seed=seed, steps=steps, foot_lock=True)
     off = generate(client, prompt, seconds=seconds, seed=seed, steps=steps, foot_lock=False)
     joints = {}
     for name, out in (("on", on), ("off", off)):
-        joints[name] = np.load(next(f for f in out[3] if f.endswith(".npy") and not f.endswith("_features.npy")))
+        joints[name] = np.load(next(f for f in out[3] if f.endswith("_joints.npy")))
     assert "Foot lock" in on[2] and "Foot lock" not in off[2]
     assert Path(on[3][0]).parent != Path(off[3][0]).parent, "the switch is part of the request: no reuse"
     locked = pipe.generate(prompt, seconds=seconds, seed=seed, steps=steps, return_attention=True)
@@ -189,7 +208,7 @@ def test_eight_simultaneous_sessions_get_their_own_motions(server, pipe, tmp_pat
         c = Client(url, verbose=False, download_files=str(tmp_path / str(i)), analytics_enabled=False)
         prompt, seconds, seed = jobs[i]
         out = generate(c, prompt, seconds=seconds, seed=seed)
-        npy = next(f for f in out[3] if f.endswith(".npy"))
+        npy = next(f for f in out[3] if f.endswith("_joints.npy"))
         # the client is kept: a session whose client has gone is closed and its folder removed
         return np.load(npy), out[2], [w[0] for w in out[4]["choices"]], c
 
@@ -207,6 +226,42 @@ def test_eight_simultaneous_sessions_get_their_own_motions(server, pipe, tmp_pat
     sessions = list(studio_app.workspace.sessions.iterdir())
     assert len(sessions) >= 8, "one folder per session"
     print(f"8 sessions served in {elapsed:.1f} s")
+
+
+def test_a_sessions_files_their_served_copies_and_its_uploads_go_when_it_ends(server, tmp_path, monkeypatch):
+    """A tab that closes ends its session (its heartbeat stops): the session's folder, the copies
+    Gradio serves of its files and the files it uploaded are removed at once, and their URLs fail."""
+    from gradio.processing_utils import hash_file
+    from gradio_client import handle_file
+
+    monkeypatch.setenv("GRADIO_HEARTBEAT_INTERVAL", "0.5")   # notice the closed connection quickly
+    url, studio_app = server
+    ws = studio_app.workspace
+    session = "a-session-that-ends"
+    np.save(tmp_path / "my-own-walk.npy", synthetic_walk(40))
+    c = Client(url, verbose=False, download_files=str(tmp_path / "dl"), analytics_enabled=False)
+    c.session_hash = session
+    try:
+        with httpx.stream("GET", f"{url}gradio_api/heartbeat/{session}", timeout=60) as beat:
+            lines = beat.iter_lines()     # kept: dropping the iterator closes the connection
+            next(lines)                   # the session is open, as a tab's
+            generate(c, "a person walks forward", seconds=1.6, seed=11)
+            assert c.predict(handle_file(str(tmp_path / "my-own-walk.npy")), api_name="/real_upload") == ""
+            folder = ws.sessions / ws.session_key(session)
+            served = [ws.gradio_cache / hash_file(f) / f.name for f in folder.rglob("*") if f.is_file()]
+            uploads = list(ws.gradio_cache.rglob("my-own-walk.npy"))
+            assert len(served) == 5 and all(p.is_file() for p in served) and len(uploads) == 1
+            links = [f"{url}gradio_api/file={p}" for p in served]
+            assert all(httpx.get(link).status_code == 200 for link in links)
+            c.close()          # the client keeps a heartbeat of its own for the session it uses
+        deadline = time.time() + 30
+        while (folder.exists() or any(p.exists() for p in served + uploads)) and time.time() < deadline:
+            time.sleep(0.2)
+        assert not folder.exists() and not any(p.exists() for p in served + uploads)
+        # Gradio refuses a path it no longer holds (403), as it refuses any path it never served
+        assert {httpx.get(link).status_code for link in links} <= {403, 404}
+    finally:
+        c.close()
 
 
 def test_only_the_studios_outputs_are_served(server, client):
@@ -303,6 +358,13 @@ def test_restyle_slider_keeps_every_frame():
     assert len(steps) == 30 and not fig.frames and not fig.layout.updatemenus
     z_up = np.asarray(steps[17].args[0]["z"][0], dtype=float)
     assert np.nanmax(z_up) == pytest.approx(joints[17, :, 1].max(), abs=1e-6)  # plot z is the data's y
+    # the box follows the body: the step also moves the scene's ranges, by dotted keys (the camera stays)
+    assert steps[17].method == "update" and list(steps[17].args[2]) == [2]
+    x0, x1 = steps[17].args[1]["scene.xaxis.range"]
+    assert (x0 + x1) / 2 == pytest.approx(joints[17, 0, 2], abs=1e-6)
+    assert set(steps[17].args[1]) == {"scene.xaxis.range", "scene.yaxis.range"}
+    # without the play button the slider takes the full width
+    assert (fig.layout.sliders[0].x, fig.layout.sliders[0].len) == (0, 1)
 
 
 def test_file_stems_are_safe():

@@ -86,8 +86,8 @@ def test_word_swap_gives_a_side_by_side_video_both_maps_and_files(client, pipe):
     assert left["data"][0]["zmax"] == right["data"][0]["zmax"], "both maps on one colour scale"
 
     expected = pipe.edit(SOURCE, TARGET, mode="swap", seed=3, seconds=1.2, steps=STEPS)
-    np.testing.assert_allclose(np.load(by_name(files, "_edited.npy")), expected.edited.joints, atol=1e-3)
-    np.testing.assert_allclose(np.load(by_name(files, "_source.npy")), expected.source.joints, atol=1e-3)
+    np.testing.assert_allclose(np.load(by_name(files, "_edited_joints.npy")), expected.edited.joints, atol=1e-3)
+    np.testing.assert_allclose(np.load(by_name(files, "_source_joints.npy")), expected.source.joints, atol=1e-3)
     assert np.load(by_name(files, "_edited_features.npy")).shape == (24, 263)
     assert by_name(files, "_edited.bvh").read_text().startswith("HIERARCHY")
 
@@ -121,7 +121,7 @@ def test_every_edit_mode_and_their_compositions(client, kwargs, expect):
     assert mp4_frames(video).shape[1:] == (384, 768, 3)
     for text in expect:
         assert text in summary, (text, summary)
-    edited, source = np.load(by_name(files, "_edited.npy")), np.load(by_name(files, "_source.npy"))
+    edited, source = np.load(by_name(files, "_edited_joints.npy")), np.load(by_name(files, "_source_joints.npy"))
     n = min(len(edited), len(source))
     # the tiny model reacts weakly; an edit that was not applied would leave both branches identical
     assert np.abs(edited[:n] - source[:n]).max() > 1e-5, "the edit changed the motion"
@@ -189,7 +189,7 @@ def test_path_control_renders_targets_and_reports_its_error(client, pipe):
         np.testing.assert_allclose(z["targets"], expected_signal.targets, atol=1e-6)
         assert z["mask"][:, 0, [0, 2]].all() and not z["mask"][:, 1:].any()
     expected = pipe.control("a person walks forward", signal=expected_signal, seed=2, strength=3.0, steps=STEPS)
-    np.testing.assert_allclose(np.load(by_name(files, "_path_seed2.npy")), expected.joints, atol=1e-3)
+    np.testing.assert_allclose(np.load(by_name(files, "_path_seed2_joints.npy")), expected.joints, atol=1e-3)
     mean_cm = float(summary.split("mean ")[1].split(" cm")[0])
     assert mean_cm == pytest.approx(100 * expected.info["control_mean_error_m"], abs=0.06)
 
@@ -229,7 +229,7 @@ def test_inbetweening_and_upper_body_edits_start_from_the_last_generation(client
     with pytest.raises(AppError, match="generate a motion first"):
         control(client, task="inbetween")
     out = client.predict("a person walks forward", False, 1.2, 4, STEPS, 7.5, "ddim", api_name="/generate")
-    base = np.load(next(f for f in out[3] if f.endswith("seed4.npy")))
+    base = np.load(next(f for f in out[3] if f.endswith("seed4_joints.npy")))
     _, _, summary, files = control(client, prompt="a person runs forward", task="inbetween", keyframes="0-1, last")
     assert "In-betweening" in summary and "frames 0, 1, 23" in summary
     with np.load(by_name(files, "_control.npz")) as z:

@@ -63,9 +63,9 @@ def component(studio_app, elem_id: str) -> dict:
 def test_an_uploaded_bvh_is_inverted_edited_and_rendered_with_its_input(client, pipe, walk_bvh):
     video, summary, files = edit_real(client, upload=handle_file(str(walk_bvh)))
     names = [Path(f).name for f in files]
-    assert names == ["my-walk_mirror_side-by-side.mp4", "my-walk_mirror_edited.bvh", "my-walk_mirror_edited.npy",
+    assert names == ["my-walk_mirror_side-by-side.mp4", "my-walk_mirror_edited.bvh", "my-walk_mirror_edited_joints.npy",
                      "my-walk_mirror_edited_features.npy"]
-    joints, features = np.load(by_name(files, "_edited.npy")), np.load(by_name(files, "_features.npy"))
+    joints, features = np.load(by_name(files, "_edited_joints.npy")), np.load(by_name(files, "_features.npy"))
     n = min(pipe.canvas_frames, 60) // 4 * 4          # 61 frames -> 60 feature frames, cut to the canvas
     assert joints.shape == (n, 22, 3) and joints.dtype == np.float32 and np.isfinite(joints).all()
     assert features.shape == (n, 263) and np.isfinite(features).all()
@@ -109,7 +109,7 @@ def test_npy_joints_and_features_upload_with_every_mode(client, tmp_path):
         video, summary, files = edit_real(client, **kwargs)
         for text in expect:
             assert text in summary, (text, summary)
-        joints = np.load(by_name(files, "_edited.npy"))
+        joints = np.load(by_name(files, "_edited_joints.npy"))
         assert len(joints) == 32 and np.isfinite(joints).all()
         assert mp4_frames(video).shape == (32, 384, 1152, 3)
 
@@ -127,7 +127,7 @@ def test_a_picked_test_clip_prefills_its_caption_and_is_edited(client, server, p
     video, summary, files = edit_real(client, clip=tests[0], source=source, mode="reweight", word="walks",
                                       mirror="none")
     assert f"test clip “{tests[0]}” described as “{caption}”" in summary.replace("\\", "")
-    joints = np.load(by_name(files, "_edited.npy"))
+    joints = np.load(by_name(files, "_edited_joints.npy"))
     n = len(features) // 4 * 4
     assert joints.shape == (n, 22, 3) and np.isfinite(joints).all()
     expected = pipe.edit_real(features, caption, mode="reweight", reweight={"walks": 2.0}, steps=STEPS)
@@ -170,10 +170,15 @@ def test_bad_uploads_and_requests_are_reported_and_the_server_keeps_working(clie
     for kwargs, message in cases:
         with pytest.raises(AppError, match=message):
             edit_real(client, **kwargs)
+        if "upload" in kwargs and "clip" not in kwargs and len(kwargs) == 1:
+            # the same file is refused the moment it is uploaded, with the same message
+            with pytest.raises(AppError, match=message):
+                client.predict(kwargs["upload"], api_name="/real_upload")
     # server paths in place of an upload are refused
     for upload in (str(walk_bvh), {"path": "/etc/passwd", "orig_name": "passwd.bvh"}):
         with pytest.raises(AppError):
             edit_real(client, upload=upload)
+    assert client.predict(handle_file(str(walk_bvh)), api_name="/real_upload") == "", "a good file is taken"
     _, summary, _ = edit_real(client, upload=handle_file(str(walk_bvh)), mirror="upper")
     assert "**Mirroring** the arms" in summary, "the server still serves"
 
@@ -183,7 +188,7 @@ def test_mode_changes_show_the_controls_the_mode_uses(client):
     assert "Replace words" in help_text and target["visible"] is True and mirror["value"] == "all"
     help_text, target, mirror, word = client.predict("reweight", "none", SOURCE, "", "", api_name="/real_mode")
     assert target["visible"] is False and word["value"] == "forward"
-    assert client.predict(api_name="/real_upload") == ""
+    assert client.predict(None, api_name="/real_upload") == ""
 
 
 def test_every_real_event_has_an_api_name(server):

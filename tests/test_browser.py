@@ -89,13 +89,35 @@ def page(tmp_path):
 
 
 def shoot(target, name: str) -> None:
-    """Screenshot a page or an element into the artifacts (and $SALAD_SCREENSHOTS when set)."""
+    """Screenshot a page or an element into the artifacts (and $SALAD_SCREENSHOTS when set, in 256
+    colours, which keeps a tab's screenshot to a few hundred kB)."""
     target.screenshot(path=str(ARTIFACTS / name))
     extra = os.environ.get("SALAD_SCREENSHOTS")
     if extra:
+        from PIL import Image
+
         folder = Path(extra) if Path(extra).is_absolute() else REPO / extra
         folder.mkdir(parents=True, exist_ok=True)
-        target.screenshot(path=str(folder / name))
+        with Image.open(ARTIFACTS / name) as shot:
+            shot.convert("RGB").quantize(256, dither=Image.Dither.NONE).save(folder / name, optimize=True)
+
+
+def box(page, selector: str) -> dict:
+    """The bounding box of the first element matching `selector` (it must exist)."""
+    found = page.locator(selector).first.bounding_box()
+    assert found is not None, f"{selector} is not on the page"
+    return found
+
+
+def overlap(a: dict, b: dict) -> bool:
+    return (a["x"] < b["x"] + b["width"] and b["x"] < a["x"] + a["width"]
+            and a["y"] < b["y"] + b["height"] and b["y"] < a["y"] + a["height"])
+
+
+def clipped(page, selector: str) -> list[str]:
+    """The texts of elements matching `selector` whose content does not fit their box."""
+    return page.evaluate("""sel => Array.from(document.querySelectorAll(sel))
+        .filter(e => e.scrollHeight > e.clientHeight + 1).map(e => e.innerText)""", selector)
 
 
 def video_size(page, selector: str):
@@ -281,3 +303,133 @@ def test_a_real_motion_upload_is_mirrored_next_to_its_input(studio_url, page, ba
     page.wait_for_function("() => document.querySelectorAll('#real-downloads a').length >= 4")
     shoot(page.locator("#real-tab"), "real-mirror.png")
     assert not page.outside_requests, f"the page reached outside hosts: {page.outside_requests[:5]}"
+
+
+def legend_entries(page, plot: str) -> list[str]:
+    """The legend entries of a Plotly figure that lie inside the figure's area."""
+    return page.evaluate("""sel => {
+        const g = document.querySelector(sel), area = g.getBoundingClientRect();
+        return Array.from(g.querySelectorAll('.legend .traces')).filter(t => {
+            const b = t.getBoundingClientRect();
+            return b.top >= area.top && b.bottom <= area.bottom && b.left >= area.left - 1 && b.right <= area.right + 1;
+        }).map(t => t.textContent); }""", plot)
+
+
+def test_at_800_px_the_views_are_wide_framed_and_nothing_overlaps(studio_url, page):
+    page.set_viewport_size({"width": 800, "height": 1000})
+    page.goto(studio_url, wait_until="load")
+    page.locator("#prompt textarea").fill("a person walks forward")
+    page.locator("#generate-button").click()
+    page.wait_for_function("() => { const v = document.querySelector('#motion-video video');"
+                           " return v && v.videoWidth > 0; }")
+    plot = "#skeleton-plot .js-plotly-plot"
+    page.wait_for_function(f"() => {{ const g = document.querySelector({plot!r}); return g && g.data; }}")
+    page.wait_for_timeout(500)      # the figure is drawn a moment after its data arrives
+    # the results sit under the controls: the video and the 3D view share the full width
+    video, view = box(page, "#motion-video video"), box(page, plot)
+    assert video["width"] >= 300 and view["width"] >= 300 and not overlap(video, view)
+    # the 3D view: every legend entry shown, the box around the body (2.2 m), moving with it
+    assert len(legend_entries(page, plot)) == 8
+    ranges = "JSON.stringify(document.querySelector(PLOT).layout.scene.xaxis.range)".replace("PLOT", repr(plot))
+    x0, x1 = page.evaluate(f"() => {ranges}").strip("[]").split(",")
+    assert abs(float(x1) - float(x0) - 2.2) < 1e-6
+    page.evaluate(f"() => {{ window.__rangeBefore = {ranges}; }}")
+    page.locator(f"{plot} .slider-rail-rect").scroll_into_view_if_needed()     # below the fold at this width
+    rail = page.locator(f"{plot} .slider-rail-rect").bounding_box()
+    page.mouse.click(rail["x"] + 0.95 * rail["width"], rail["y"] + rail["height"] / 2)
+    page.wait_for_function(f"() => document.querySelector({plot!r}).layout.sliders[0].active > 0")
+    page.wait_for_function(f"() => {ranges} !== window.__rangeBefore", timeout=15000)
+    # captions above the views are whole; the downloads tell joints from features at a glance
+    assert not clipped(page, "#generate-tab .video-caption")
+    names = page.locator("#downloads .filename").all_text_contents()
+    assert any("".join(n.split()).endswith("_joints.npy") for n in names)
+    assert any("".join(n.split()).endswith("_features.npy") for n in names)
+    direction = page.evaluate("() => getComputedStyle(document.querySelector('#downloads .stem')).direction")
+    assert direction == "rtl", "long names are shortened at the start, keeping _joints / _features"
+    shoot(page.locator("#generate-tab"), "generate-800.png")
+
+    # the Edit tab: its caption whole, the remaining downloads' progress off the file list
+    page.get_by_role("tab", name="Edit").click()
+    page.locator("#edit-tab").get_by_text("Sampling", exact=True).click()
+    set_slider(page, "#edit-steps", STEPS)
+    # where the rendering progress shows while the edit's remaining downloads are made (a brief
+    # "processing" timer may flash on every output as a result arrives; the bar is what covered the files)
+    page.evaluate("""() => { window.__progressIn = new Set();
+        new MutationObserver(() => { for (const id of ['edit-downloads', 'edit-files-status'])
+            if (Array.from(document.querySelectorAll(`#${id} .progress-level, #${id} .progress-text`))
+                    .some(e => e.classList.contains('progress-level') || e.innerText.includes('rendering')))
+                window.__progressIn.add(id); })
+        .observe(document.body, {subtree: true, childList: true, attributes: true, characterData: true}); }""")
+    page.locator("#edit-button").click()
+    wait_for_new_video(page, "#edit-video video", None, 768)
+    assert box(page, "#edit-video video")["width"] >= 600
+    assert not clipped(page, "#edit-tab .video-caption")
+    page.wait_for_function("() => document.querySelectorAll('#edit-downloads a').length >= 13")
+    assert not overlap(box(page, "#edit-files-status"), box(page, "#edit-downloads"))
+    assert "edit-downloads" not in page.evaluate("() => Array.from(window.__progressIn)"), \
+        "no progress bar over the file list"
+    shoot(page.locator("#edit-tab"), "edit-800.png")
+    assert not page.outside_requests, f"the page reached outside hosts: {page.outside_requests[:5]}"
+
+
+def test_at_phone_width_the_3d_view_keeps_its_legend(studio_url, page):
+    page.set_viewport_size({"width": 400, "height": 900})
+    page.goto(studio_url, wait_until="load")
+    page.locator("#prompt textarea").fill("someone walks and turns left")
+    page.locator("#generate-button").click()
+    plot = "#skeleton-plot .js-plotly-plot"
+    page.wait_for_function(f"() => {{ const g = document.querySelector({plot!r}); return g && g.data; }}")
+    page.wait_for_timeout(500)
+    view = box(page, plot)
+    assert view["x"] >= 0 and view["x"] + view["width"] <= 400 and view["width"] >= 300
+    assert len(legend_entries(page, plot)) == 8
+    shoot(page.locator("#skeleton-plot"), "3d-view-phone.png")
+
+
+def test_a_clamped_number_and_a_cut_prompt_are_said_at_once(studio_url, page):
+    page.goto(studio_url, wait_until="load")
+    page.locator("#generate-tab").get_by_text("Automatic length").click()
+    seconds = page.locator("#seconds input[type=number]")
+    longest = page.evaluate("() => document.querySelector('#seconds input[type=range]').max")
+    seconds.fill("1000")
+    seconds.press("Enter")
+    note = page.locator("#seconds .salad-note")
+    note.wait_for()
+    assert "1000" in note.inner_text() and f"set to {longest}" in note.inner_text()
+    assert seconds.input_value() == longest, "the box shows the value that is used"
+    shoot(page.locator("#seconds"), "clamp-note.png")
+    seconds.fill("2")
+    seconds.press("Enter")
+    note.wait_for(state="detached")
+    # a number box's limits too: the seed
+    page.locator("#generate-tab").get_by_text("Sampling", exact=True).click()
+    seed = page.locator("#seed input[type=number]")
+    seed.wait_for()
+    seed.fill("-5")
+    seed.press("Enter")
+    page.locator("#seed .salad-note").wait_for()
+    assert seed.input_value() == "0" and "set to 0" in page.locator("#seed .salad-note").inner_text()
+    # the prompt box takes 300 characters: a longer paste is cut, and the page says so
+    page.evaluate("""() => { const a = document.querySelector('#prompt textarea'); a.focus();
+        const data = new DataTransfer(); data.setData('text', 'a person walks forward '.repeat(20));
+        a.dispatchEvent(new ClipboardEvent('paste', {clipboardData: data, bubbles: true, cancelable: true})); }""")
+    cut = page.locator("#prompt .salad-note")
+    cut.wait_for()
+    assert "limited to 300 characters" in cut.inner_text() and "160 pasted characters were cut" in cut.inner_text()
+
+
+def test_a_bad_upload_is_reported_when_it_is_uploaded(studio_url, page, tmp_path):
+    import numpy as np
+
+    np.save(tmp_path / "not-a-motion.npy", np.zeros((40, 5), dtype=np.float32))
+    page.goto(studio_url, wait_until="load")
+    page.get_by_role("tab", name="Real motion").click()
+    page.locator("#real-upload input[type=file]").set_input_files(str(tmp_path / "not-a-motion.npy"))
+    toast = page.get_by_text("not-a-motion.npy: expected joints (T, 22, 3)")
+    toast.first.wait_for(timeout=30000)
+    # a prompt the encoder cannot read: the message shows its characters (a CJK font is installed)
+    page.get_by_role("tab", name="Generate").click()
+    page.locator("#prompt textarea").fill("一个人在走路")
+    page.locator("#generate-button").click()
+    page.get_by_text("cannot read “一个人在走路”").first.wait_for()
+    page.screenshot(path=str(ARTIFACTS / "upload-and-cjk-errors.png"))

@@ -82,6 +82,18 @@ def test_title_and_tint_change_pixels(walk):
     assert np.abs(plain[body].astype(int) - tinted[body]).mean() > 20
 
 
+def test_cjk_text_is_drawn_in_a_cjk_font_when_one_is_installed():
+    from salad.render.overlay import _CJK_FONTS, font, text_font
+
+    assert text_font("a person waves", "bold", 20) is font("bold", 20)
+    if not any(path.is_file() for path in _CJK_FONTS):
+        pytest.skip("no CJK font installed (apt install fonts-wqy-zenhei)")
+    cjk = text_font("挥手 a person waves", "bold", 20)
+    # a font without the glyphs draws both characters as the same box
+    wave, hand = (np.asarray(cjk.getmask(c)) for c in "挥手")
+    assert wave.shape != hand.shape or (wave != hand).any()
+
+
 def test_rendering_is_repeatable_across_calls(walk):
     first = render_frames(walk[:4], size=SIZE)
     tg = walk[:4] + 0.2
@@ -313,6 +325,32 @@ def test_skeleton_figure(walk):
     assert np.nanmax(zs) == pytest.approx(walk[5, :, 1].max(), abs=1e-5)
     with pytest.raises(ValueError):
         skeleton_figure(walk[:, :3])
+
+
+def test_skeleton_figure_follows_the_body(walk):
+    """The default view is a 2.2 m box centred on the root that each frame moves along (plot x, y are
+    the data's z, x); "path" keeps one box around the whole motion."""
+    from salad.render.figures import BODY_BOX
+
+    far = walk.copy()
+    far[..., 2] += np.linspace(0, 10, len(walk))[:, None]        # a 10 m walk
+    fig = skeleton_figure(far, fps=20)
+    for k in (0, len(far) - 1):
+        scene = fig.frames[k].layout.scene
+        x0, x1 = scene.xaxis.range
+        y0, y1 = scene.yaxis.range
+        assert x1 - x0 == pytest.approx(BODY_BOX) and y1 - y0 == pytest.approx(BODY_BOX)
+        assert (x0 + x1) / 2 == pytest.approx(far[k, 0, 2], abs=1e-5)
+        assert (y0 + y1) / 2 == pytest.approx(far[k, 0, 0], abs=1e-5)
+    assert tuple(fig.layout.scene.xaxis.range) == tuple(fig.frames[0].layout.scene.xaxis.range)
+    # every part of the legend, the slider ticking only its labelled steps
+    assert len([t for t in fig.data if t.showlegend is not False]) == 8
+    assert fig.layout.sliders[0].minorticklen == 0
+    whole = skeleton_figure(far, fps=20, view="path")
+    x0, x1 = whole.layout.scene.xaxis.range
+    assert x1 - x0 > 10 and whole.frames[5].layout.scene.xaxis.range is None
+    with pytest.raises(ValueError, match="view"):
+        skeleton_figure(far, view="close-up")
 
 
 def test_attention_figures(tmp_path):

@@ -46,8 +46,11 @@ def build_attention_panel() -> AttentionPanel:
         last_step = gr.Slider(1, DEFAULT_STEPS, value=DEFAULT_STEPS, step=1, label="Last step", scale=1)
     with gr.Row(equal_height=True):
         heatmap = gr.Plot(label="The word's attention over body parts and time", elem_id="word-heatmap")
-        video = gr.Video(label="Joints tinted by the word's attention", autoplay=True, loop=True,
-                         interactive=False, elem_id="word-video")
+        with gr.Column():
+            # a caption, not a label badge: the badge would cover the video's burned-in title
+            gr.Markdown("**Joints tinted by the word's attention**", elem_classes="video-caption")
+            video = gr.Video(label="Joints tinted by the word's attention", show_label=False, autoplay=True,
+                             loop=True, interactive=False, elem_id="word-video")
     gr.Markdown(READING_NOTE, elem_id="attention-reading-note")
     overview = gr.Plot(label="All words on one colour scale", elem_id="attention-overview")
     downloads = gr.File(label="Attention maps: NPZ (this aggregation + raw per step and layer) and PNG",

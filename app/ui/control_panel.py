@@ -15,7 +15,7 @@ from ..settings import (
     DEFAULT_CFG, DEFAULT_PATH_SPEED, DEFAULT_SECONDS, DEFAULT_STEPS, DEFAULT_STRENGTH, MAX_CFG, MAX_PATH_SPEED,
     MAX_SEED, MAX_STEPS, MAX_STRENGTH, MAX_UPLOAD_BYTES, SECONDS_STEP,
 )
-from .generate_panel import MIN_SECONDS, foot_lock_checkbox
+from .generate_panel import CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox
 
 INTRO = ("Generate a motion that also meets joint position targets, by guiding the sampling "
          "(no retraining). Targets are in metres, Y up, the character starting at the origin facing +Z "
@@ -58,6 +58,7 @@ class ControlPanel:
     top_view: gr.Plot
     summary: gr.Markdown
     downloads: gr.File
+    bvh_units: gr.Dropdown
 
     @property
     def inputs(self) -> list:
@@ -73,7 +74,7 @@ def build_control_panel(max_seconds: float, examples: list[str]) -> ControlPanel
     longest = max(MIN_SECONDS, float(max_seconds))
     gr.Markdown(INTRO)
     with gr.Row(equal_height=False):
-        with gr.Column(scale=2, min_width=320):
+        with gr.Column(scale=2, min_width=CONTROLS_MIN_WIDTH):
             prompt = gr.Textbox(label="Prompt", lines=2, max_lines=4, max_length=MAX_PROMPT_CHARS,
                                 value="a person walks forward", elem_id="control-prompt")
             task = gr.Radio([(label, key) for key, label in TASKS.items()], value="path", label="Targets",
@@ -108,15 +109,16 @@ def build_control_panel(max_seconds: float, examples: list[str]) -> ControlPanel
             button = gr.Button("Generate with control", variant="primary", elem_id="control-button")
             preview = gr.Plot(initial_preview(seconds.value, speed.value), label="The targets, from above",
                               elem_id="control-preview")
-        with gr.Column(scale=3, min_width=360):
+        with gr.Column(scale=3, min_width=RESULTS_MIN_WIDTH):
             gr.Markdown("**Guided motion**: targets in green, the target path on the floor",
                         elem_classes="video-caption")
             video = gr.Video(label="Guided motion", show_label=False, autoplay=True, loop=True, interactive=False,
                              elem_id="control-video")
             top_view = gr.Plot(label="Target and achieved pelvis path, from above", elem_id="control-top-view")
             summary = gr.Markdown(elem_id="control-summary")
+            bvh_units = bvh_units_dropdown("control-bvh-units")
             downloads = gr.File(label="Downloads: MP4, BVH, NPY joints and features, NPZ, control signal (NPZ)",
                                 file_count="multiple", interactive=False, elem_id="control-downloads")
     return ControlPanel(prompt, task, path_group, preset, seconds, speed, upload_group, upload, example, upload_help,
                         keyframes, strength, seed, steps, cfg, foot_lock, button, preview, video, top_view, summary,
-                        downloads)
+                        downloads, bvh_units)

@@ -13,10 +13,11 @@ from ..settings import (
     DEFAULT_CFG, DEFAULT_REWEIGHT, DEFAULT_SECONDS, DEFAULT_SELF_INJECT, DEFAULT_STEPS, DEFAULT_TAU, MAX_CFG,
     MAX_REWEIGHT, MAX_SEED, MAX_STEPS, SECONDS_STEP,
 )
-from .generate_panel import MIN_SECONDS, foot_lock_checkbox
+from .generate_panel import CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox
 
 INTRO = ("Edit a motion without retraining: the source prompt and the edit are sampled together from the same "
          "noise, and the edit changes only the cross-attention between words and body parts.")
+FILES_NOTE = "The edited motion's own MP4 and the attention maps join the downloads after each edit."
 MODES = [("word swap", "swap"), ("refine (add words)", "refine"), ("re-weight a word", "reweight"),
          ("mirror left/right", "mirror")]
 MODE_HELP = {
@@ -60,6 +61,8 @@ class EditPanel:
     source_heatmap: gr.Plot
     edited_heatmap: gr.Plot
     downloads: gr.File
+    bvh_units: gr.Dropdown
+    files_status: gr.Markdown
 
     @property
     def inputs(self) -> list:
@@ -72,7 +75,7 @@ def build_edit_panel(max_seconds: float) -> EditPanel:
     longest = max(MIN_SECONDS, float(max_seconds))
     gr.Markdown(INTRO)
     with gr.Row(equal_height=False):
-        with gr.Column(scale=2, min_width=320):
+        with gr.Column(scale=2, min_width=CONTROLS_MIN_WIDTH):
             source = gr.Textbox(label="Source prompt", lines=2, max_lines=4, max_length=MAX_PROMPT_CHARS,
                                 value=EXAMPLE_EDITS[0][0], elem_id="edit-source")
             mode = gr.Radio(MODES, value="swap", label="Edit", elem_id="edit-mode")
@@ -110,7 +113,7 @@ def build_edit_panel(max_seconds: float) -> EditPanel:
             button = gr.Button("Edit", variant="primary", elem_id="edit-button")
             gr.Examples(examples=EXAMPLE_EDITS, inputs=[source, mode, target], label="Example edits",
                         cache_examples=False, api_name="load_edit_example")
-        with gr.Column(scale=3, min_width=360):
+        with gr.Column(scale=3, min_width=RESULTS_MIN_WIDTH):
             # The panels carry their own "source" / "edited" captions, which a label badge would cover.
             gr.Markdown("**Source and edited, in sync**", elem_classes="video-caption")
             video = gr.Video(label="Source and edited, in sync", show_label=False, autoplay=True, loop=True,
@@ -121,9 +124,13 @@ def build_edit_panel(max_seconds: float) -> EditPanel:
             with gr.Row(equal_height=True):
                 source_heatmap = gr.Plot(label="Source", elem_id="edit-source-heatmap")
                 edited_heatmap = gr.Plot(label="Edited", elem_id="edit-edited-heatmap")
+            bvh_units = bvh_units_dropdown("edit-bvh-units")
+            # The remaining downloads' rendering shows its progress on this line: on the file list itself
+            # the progress bar covered the files.
+            files_status = gr.Markdown(FILES_NOTE, elem_id="edit-files-status", elem_classes="files-status")
             downloads = gr.File(label="Downloads: side-by-side and edited MP4, BVH, NPY joints and features, NPZ, "
                                       "attention maps (NPZ, PNG)", file_count="multiple", interactive=False,
                                 elem_id="edit-downloads")
     return EditPanel(source, mode, mode_help, target, tau, reweight_word, reweight_scale, mirror, self_inject,
                      auto_length, seconds, seed, steps, cfg, sampler, foot_lock, button, video, summary, word,
-                     source_heatmap, edited_heatmap, downloads)
+                     source_heatmap, edited_heatmap, downloads, bvh_units, files_status)

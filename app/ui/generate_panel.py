@@ -12,6 +12,12 @@ from ..examples import EXAMPLE_PROMPTS
 from ..settings import DEFAULT_CFG, DEFAULT_SECONDS, DEFAULT_STEPS, MAX_CFG, MAX_SEED, MAX_STEPS, SECONDS_STEP
 
 MIN_SECONDS = MIN_AUTO_FRAMES / FPS    # the pipeline's shortest motion
+# Minimum widths (px) at which the controls and the results columns sit side by side: together more
+# than an 800 px window offers, so there the results take the full width under the controls.
+CONTROLS_MIN_WIDTH = 340
+RESULTS_MIN_WIDTH = 380
+VIEW_MIN_WIDTH = 300      # the video and the 3D view share a row only when each gets this much
+PLOT_CAPTION = "**3D view** · drag to orbit, slide through the frames; the box follows the body"
 FOOT_LOCK_LABEL = "Foot lock (pin planted feet)"
 FOOT_LOCK_INFO = "planted feet stay put and the legs are re-solved by IK; off shows the decoder's raw joints"
 
@@ -19,6 +25,13 @@ FOOT_LOCK_INFO = "planted feet stay put and the legs are re-solved by IK; off sh
 def foot_lock_checkbox(elem_id: str) -> gr.Checkbox:
     """The foot clean-up switch every tab that samples motions has (on, as in the library)."""
     return gr.Checkbox(value=True, label=FOOT_LOCK_LABEL, info=FOOT_LOCK_INFO, elem_id=elem_id)
+
+
+def bvh_units_dropdown(elem_id: str) -> gr.Dropdown:
+    """The length unit of a tab's BVH downloads: centimetres (what Blender, MotionBuilder and most
+    BVH readers assume) or metres."""
+    return gr.Dropdown([("centimetres (cm)", "cm"), ("metres (m)", "m")], value="cm", label="BVH units",
+                       min_width=160, elem_id=elem_id)
 
 
 @dataclass
@@ -36,6 +49,7 @@ class GeneratePanel:
     skeleton: gr.Plot
     summary: gr.Markdown
     downloads: gr.File
+    bvh_units: gr.Dropdown
 
     @property
     def inputs(self) -> list:
@@ -47,7 +61,7 @@ class GeneratePanel:
 def build_generate_panel(max_seconds: float) -> GeneratePanel:
     longest = max(MIN_SECONDS, float(max_seconds))
     with gr.Row(equal_height=False):
-        with gr.Column(scale=2, min_width=320):
+        with gr.Column(scale=2, min_width=CONTROLS_MIN_WIDTH):
             prompt = gr.Textbox(label="Prompt", lines=2, max_lines=4, max_length=MAX_PROMPT_CHARS,
                                 placeholder="a person waves their right hand happily", elem_id="prompt")
             gr.Examples(examples=[[p] for p in EXAMPLE_PROMPTS], inputs=[prompt], examples_per_page=8,
@@ -59,7 +73,7 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
                 seconds = gr.Slider(MIN_SECONDS, longest, value=min(DEFAULT_SECONDS, longest), step=SECONDS_STEP,
                                     label="Seconds", interactive=False, scale=2, elem_id="seconds")
             with gr.Accordion("Sampling", open=False):
-                seed = gr.Number(value=0, precision=0, minimum=0, maximum=MAX_SEED, label="Seed")
+                seed = gr.Number(value=0, precision=0, minimum=0, maximum=MAX_SEED, label="Seed", elem_id="seed")
                 steps = gr.Slider(1, MAX_STEPS, value=DEFAULT_STEPS, step=1, label="Diffusion steps")
                 cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)",
                                 info="higher follows the text more closely")
@@ -68,15 +82,21 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
                                         "the 250-step solution, DDIM-50: 11 mm)")
                 foot_lock = foot_lock_checkbox("foot-lock")
             button = gr.Button("Generate", variant="primary", elem_id="generate-button")
-        with gr.Column(scale=3, min_width=360):
-            with gr.Row(equal_height=True):
-                video = gr.Video(label="Skeleton video", autoplay=True, loop=True, interactive=False,
-                                 elem_id="motion-video")
-                skeleton = gr.Plot(label="3D view: drag to orbit, slide through the frames",
-                                   elem_id="skeleton-plot")
+        with gr.Column(scale=3, min_width=RESULTS_MIN_WIDTH):
+            with gr.Row(equal_height=False):
+                # Captions above the views instead of label badges, which would cover the video's
+                # burned-in title and the plot's legend.
+                with gr.Column(min_width=VIEW_MIN_WIDTH):
+                    gr.Markdown("**Skeleton video**", elem_classes="video-caption")
+                    video = gr.Video(label="Skeleton video", show_label=False, autoplay=True, loop=True,
+                                     interactive=False, elem_id="motion-video")
+                with gr.Column(min_width=VIEW_MIN_WIDTH):
+                    gr.Markdown(PLOT_CAPTION, elem_classes="video-caption", elem_id="skeleton-caption")
+                    skeleton = gr.Plot(label="3D view", show_label=False, elem_id="skeleton-plot")
             summary = gr.Markdown(elem_id="summary")
-            downloads = gr.File(label="Downloads: MP4 video, BVH (cm), NPY joints, NPY features, "
+            bvh_units = bvh_units_dropdown("bvh-units")
+            downloads = gr.File(label="Downloads: MP4 video, BVH, NPY joints, NPY features, "
                                       "NPZ joints + features",
                                 file_count="multiple", interactive=False, elem_id="downloads")
     return GeneratePanel(prompt, auto_length, seconds, seed, steps, cfg, sampler, foot_lock, button, video,
-                         skeleton, summary, downloads)
+                         skeleton, summary, downloads, bvh_units)

@@ -15,8 +15,8 @@ from ..session import Result, Session
 from ..settings import DEFAULT_TAU
 from ..studio import Studio
 from ..validation import (
-    AttentionRequest, control_signal, parse_attention, parse_control, parse_edit, parse_generate, parse_real_edit,
-    parse_word,
+    AttentionRequest, control_signal, parse_attention, parse_bvh_units, parse_control, parse_edit, parse_generate,
+    parse_real_edit, parse_word,
 )
 from .edit_panel import MODE_HELP
 from .control_panel import UPLOAD_HELP
@@ -78,6 +78,12 @@ class Handlers:
         self.studio.session(state, request.session_hash)     # marks the session as in use
         return state.current
 
+    def _note_upload(self, upload, request: gr.Request | None) -> None:
+        """An uploaded file a request used goes when its session ends."""
+        path = upload.get("path") if isinstance(upload, dict) else upload
+        if isinstance(path, str) and request is not None and request.session_hash:
+            self.studio.workspace.note_upload(request.session_hash, path)
+
     @staticmethod
     def length_mode(auto_length):
         return gr.Slider(interactive=not bool(auto_length))
@@ -88,7 +94,7 @@ class Handlers:
         session = self.studio.session(state, request.session_hash)
         result = self.studio.generate(session, req, _gr_progress(progress))
         maps = result.motion.attention
-        files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "features", "npz")]
+        files = [str(p) for p in self.studio.downloads(result)]
         return (
             session,
             str(result.files["mp4"]),
@@ -197,9 +203,11 @@ class Handlers:
         return control_signal(self.studio.pipe, task, preset, seconds, speed, upload, example, keyframes, base=base,
                               upload_root=self.studio.workspace.gradio_cache, examples_dir=self.studio.control_examples)
 
-    def control_preview(self, task, preset, seconds, speed, upload, example, keyframes, state):
+    def control_preview(self, task, preset, seconds, speed, upload, example, keyframes, state,
+                        request: gr.Request = None):
         """The targets seen from above, or why there are none yet (never an error toast:
         the inputs may still be half filled in)."""
+        self._note_upload(upload, request)
         try:
             signal, _, _ = self._signal(task, preset, seconds, speed, upload, example, keyframes, state)
         except ValueError as exc:
@@ -209,13 +217,14 @@ class Handlers:
     def control(self, prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed, steps, cfg,
                 foot_lock, state, request: gr.Request, progress=gr.Progress()):
         base = state.current if isinstance(state, Session) else None
+        self._note_upload(upload, request)
         req, signal = parse_control(self.studio.pipe, prompt, task, preset, seconds, speed, upload, example, keyframes,
                                     strength, seed, steps, cfg, foot_lock, base=base,
                                     upload_root=self.studio.workspace.gradio_cache,
                                     examples_dir=self.studio.control_examples)
         session = self.studio.session(state, request.session_hash)
         result = self.studio.control(session, req, signal, _gr_progress(progress))
-        files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "features", "npz", "signal")]
+        files = [str(p) for p in self.studio.downloads(result)]
         return session, str(result.files["mp4"]), self.studio.control_figure(result), control_markdown(result), files
 
     # ------------------------------------------------------------ real motions
@@ -232,23 +241,43 @@ class Handlers:
             raise ValueError("no test clips are offered: start the studio with --clips DIR (a dataset build)")
         return self.clips.caption(clip), None
 
-    @staticmethod
-    def real_upload():
-        """A file was uploaded: it replaces a picked test clip."""
+    def real_upload(self, upload=None, request: gr.Request = None):
+        """A file was uploaded: it is read now, so that a file the edit could not use is reported at
+        once rather than on pressing Edit, and it replaces a picked test clip."""
+        self._note_upload(upload, request)
+        up = real_edit.upload_path(upload, self.studio.workspace.gradio_cache)
+        if up is not None:
+            real_edit.read_upload(up.path, up.name)
         return ""
 
     def edit_real(self, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion, steps,
                   cfg, foot_lock, state, request: gr.Request, progress=gr.Progress()):
+        self._note_upload(upload, request)
         req, motion = parse_real_edit(self.studio.pipe, upload, clip, source, mode, target, reweight_word,
                                       reweight_scale, mirror, inversion, steps, cfg, foot_lock,
                                       upload_root=self.studio.workspace.gradio_cache, clips=self.clips)
         session = self.studio.session(state, request.session_hash)
         result = real_edit.edit_real(self.studio, session, req, motion, _gr_progress(progress))
-        files = [str(result.files[k]) for k in ("mp4", "bvh", "npy", "features")]
+        files = [str(p) for p in self.studio.downloads(result)]
         return session, str(result.files["mp4"]), real_markdown(result), files
 
+    # ------------------------------------------------------------ downloads
+    def bvh_units(self, kind: str):
+        """The handler that lists the downloads of the session's latest `kind` result with its BVH
+        files in the chosen units (left as they are while there is no such result)."""
+        def handler(units, state, request: gr.Request):
+            units = parse_bvh_units(units)
+            result = state.latest(kind) if isinstance(state, Session) else None
+            if result is None:
+                return gr.File()
+            self.studio.session(state, request.session_hash)
+            return [str(p) for p in self.studio.in_bvh_units(result, self.studio.downloads(result), units)]
+        handler.__name__ = f"bvh_units_{kind}"
+        return handler
+
     def unload(self, request: gr.Request) -> None:
-        # The tab is gone: its files go now; the session's state follows when Gradio drops it.
+        # The tab is gone: its files (with Gradio's served copies and its uploads) go now; the
+        # session's state follows when Gradio drops it.
         try:
             self.studio.workspace.remove_session(request.session_hash)
         except Exception:   # a failed clean-up is retried by the janitor
@@ -260,4 +289,5 @@ def guard_all(handlers: Handlers) -> dict:
     names = ("length_mode", "generate", "attention", "attention_video", "edit_mode", "edit_words", "edit",
              "edit_files", "edit_attention", "control_task", "control_preview", "control", "real_mode", "real_clip",
              "real_upload", "edit_real")
-    return {n: guarded(getattr(handlers, n)) for n in names} | {"unload": handlers.unload}
+    units = {f"bvh_units_{kind}": guarded(handlers.bvh_units(kind)) for kind in ("generate", "edit", "control", "real")}
+    return {n: guarded(getattr(handlers, n)) for n in names} | units | {"unload": handlers.unload}

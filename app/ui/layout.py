@@ -26,8 +26,14 @@ CSS = """
 #summary, #edit-summary, #control-summary, #real-summary { min-height: 1.5em; }
 #motion-video video, #word-video video, #edit-video video, #control-video video, #real-video video {
   object-fit: contain; }
-.video-caption { margin-bottom: -8px; }
+/* Captions take their own line height: as flex items with overflow:auto they were squeezed and clipped. */
+div.block.video-caption { flex: none; overflow: visible !important; margin-bottom: -4px; }
+.files-status { flex: none; min-height: 2.6em; }
+/* A long download name loses its start rather than its end, which tells _joints.npy from _features.npy. */
+.file-preview .filename .stem { direction: rtl; text-align: left; }
 footer { display: none !important; }
+.salad-note { margin-top: 4px; padding: 4px 8px; border-radius: 6px; background: #fff4d6; color: #6b4b00;
+  font-size: 0.85rem; line-height: 1.35; }
 """
 THEME = gr.themes.Soft(primary_hue="indigo", secondary_hue="green")
 LICENCE_NOTE = ("The embedded model is trained on the Bandai-Namco Research Motion datasets "
@@ -37,7 +43,8 @@ LICENCE_NOTE = ("The embedded model is trained on the Bandai-Namco Research Moti
 API_NAMES = ("generate", "attention", "attention_video", "attention_refresh", "length_mode", "load_example",
              "edit", "edit_files", "edit_attention", "edit_mode", "edit_words", "edit_length_mode", "load_edit_example",
              "control", "control_task", "control_preview", "control_preview_refresh",
-             "edit_real", "real_mode", "real_words", "real_clip", "real_upload")
+             "edit_real", "real_mode", "real_words", "real_clip", "real_upload",
+             "bvh_units", "edit_bvh_units", "control_bvh_units", "real_bvh_units")
 
 
 def _close_session(state) -> None:
@@ -108,11 +115,22 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
                       preprocess=False, concurrency_id="views", trigger_mode="always_last")
         shown.success(h["attention_video"], attention_inputs, att.video, api_name="attention_video",
                       preprocess=False, concurrency_id="views", trigger_mode="always_last")
+        _wire_units(h, "generate", "bvh_units", gen, generated, state)
         _wire_edit(h, ed, state, settings)
         _wire_control(h, ctl, generated, state, settings)
         _wire_real(h, real, state, settings)
         demo.unload(h["unload"])
     return demo
+
+
+def _wire_units(h: dict, kind: str, api_name: str, panel, made, state) -> None:
+    """A tab's BVH units: choosing them relists its downloads, and so does every new result (`made`),
+    whose BVH files are saved in centimetres."""
+    handler = h[f"bvh_units_{kind}"]
+    panel.bvh_units.input(handler, [panel.bvh_units, state], panel.downloads, api_name=api_name, preprocess=False,
+                          concurrency_id="views", show_progress="hidden")
+    made.success(handler, [panel.bvh_units, state], panel.downloads, api_name=f"{api_name}_refresh",
+                 api_visibility="private", preprocess=False, concurrency_id="views", show_progress="hidden")
 
 
 def _wire_edit(h: dict, ed, state, settings: Settings) -> None:
@@ -130,8 +148,9 @@ def _wire_edit(h: dict, ed, state, settings: Settings) -> None:
                    outputs=[state, ed.video, ed.summary, ed.word, ed.source_heatmap, ed.edited_heatmap, ed.downloads],
                    api_name="edit", preprocess=False, concurrency_id="model", show_progress_on=[ed.video],
                    concurrency_limit=settings.concurrency, trigger_mode="once")
-    edited.success(h["edit_files"], [state], ed.downloads, api_name="edit_files", preprocess=False,
-                   concurrency_id="views", show_progress="minimal")
+    files = edited.success(h["edit_files"], [state], ed.downloads, api_name="edit_files", preprocess=False,
+                           concurrency_id="views", show_progress="minimal", show_progress_on=[ed.files_status])
+    _wire_units(h, "edit", "edit_bvh_units", ed, files, state)
     ed.word.input(h["edit_attention"], [ed.word, state], [ed.source_heatmap, ed.edited_heatmap],
                   api_name="edit_attention", preprocess=False, concurrency_id="views", trigger_mode="always_last")
 
@@ -150,10 +169,11 @@ def _wire_control(h: dict, ctl, generated, state, settings: Settings) -> None:
     # in-betweening and upper-body targets come from the last generated motion
     generated.success(h["control_preview"], preview_inputs, ctl.preview, api_name="control_preview_refresh",
                       preprocess=False, concurrency_id="views", show_progress="hidden", api_visibility="private")
-    gr.on([ctl.button.click], h["control"], inputs=ctl.inputs + [state],
-          outputs=[state, ctl.video, ctl.top_view, ctl.summary, ctl.downloads], api_name="control", preprocess=False,
-          concurrency_id="model", show_progress_on=[ctl.video], concurrency_limit=settings.concurrency,
-          trigger_mode="once")
+    guided = gr.on([ctl.button.click], h["control"], inputs=ctl.inputs + [state],
+                   outputs=[state, ctl.video, ctl.top_view, ctl.summary, ctl.downloads], api_name="control",
+                   preprocess=False, concurrency_id="model", show_progress_on=[ctl.video],
+                   concurrency_limit=settings.concurrency, trigger_mode="once")
+    _wire_units(h, "control", "control_bvh_units", ctl, guided, state)
 
 
 def _wire_real(h: dict, real, state, settings: Settings) -> None:
@@ -169,11 +189,14 @@ def _wire_real(h: dict, real, state, settings: Settings) -> None:
     # user actions only (.input / .upload): the updates these make must not set each other off
     real.clip.input(h["real_clip"], real.clip, [real.source, real.upload], api_name="real_clip", preprocess=False,
                     **quick)
-    real.upload.upload(h["real_upload"], None, real.clip, api_name="real_upload", **quick)
-    gr.on([real.button.click], h["edit_real"], inputs=real.inputs + [state],
-          outputs=[state, real.video, real.summary, real.downloads], api_name="edit_real", preprocess=False,
-          concurrency_id="model", show_progress_on=[real.video], concurrency_limit=settings.concurrency,
-          trigger_mode="once")
+    # queued: the page shows an error toast for queued events only, and the file is read (checked) here
+    real.upload.upload(h["real_upload"], real.upload, real.clip, api_name="real_upload", preprocess=False,
+                       concurrency_id="views", show_progress="hidden", api_visibility="undocumented")
+    edited = gr.on([real.button.click], h["edit_real"], inputs=real.inputs + [state],
+                   outputs=[state, real.video, real.summary, real.downloads], api_name="edit_real",
+                   preprocess=False, concurrency_id="model", show_progress_on=[real.video],
+                   concurrency_limit=settings.concurrency, trigger_mode="once")
+    _wire_units(h, "real", "real_bvh_units", real, edited, state)
 
 
 def build_error_page(message: str) -> gr.Blocks:

@@ -16,7 +16,7 @@ from ..settings import (
     DEFAULT_CFG, DEFAULT_REWEIGHT, DEFAULT_STEPS, MAX_CFG, MAX_REWEIGHT, MAX_STEPS, MAX_UPLOAD_BYTES,
 )
 from .edit_panel import MIRROR_CHOICES, MODE_HELP, MODES
-from .generate_panel import foot_lock_checkbox
+from .generate_panel import CONTROLS_MIN_WIDTH, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox
 from .summaries import MIRROR_NAMES, MODE_NAMES, escape_md, foot_lock_line, quoted, warnings_block
 
 INTRO = ("Edit a recorded motion by text. Describe the motion as it is (the source prompt): it is encoded and "
@@ -51,6 +51,7 @@ class RealPanel:
     video: gr.Video
     summary: gr.Markdown
     downloads: gr.File
+    bvh_units: gr.Dropdown
 
     @property
     def inputs(self) -> list:
@@ -62,7 +63,7 @@ def build_real_panel(clip_choices: list[tuple[str, str]]) -> RealPanel:
     """The tab's components; the clip picker only when a dataset build offers clips."""
     gr.Markdown(INTRO)
     with gr.Row(equal_height=False):
-        with gr.Column(scale=2, min_width=320):
+        with gr.Column(scale=2, min_width=CONTROLS_MIN_WIDTH):
             upload = gr.File(label=f"Upload a motion: .bvh, or .npy joints (T, 22, 3) in metres or features (T, 263); "
                                    f"at most {MAX_UPLOAD_BYTES // 1000} kB",
                              file_count="single", file_types=[".bvh", ".npy"], type="filepath",
@@ -96,15 +97,16 @@ def build_real_panel(clip_choices: list[tuple[str, str]]) -> RealPanel:
                                 elem_id="real-cfg")
                 foot_lock = foot_lock_checkbox("real-foot-lock")
             button = gr.Button("Edit the motion", variant="primary", elem_id="real-button")
-        with gr.Column(scale=3, min_width=360):
+        with gr.Column(scale=3, min_width=RESULTS_MIN_WIDTH):
             gr.Markdown("**Input, reconstruction and edit, in sync**", elem_classes="video-caption")
             video = gr.Video(label="Input, reconstruction and edit", show_label=False, autoplay=True, loop=True,
                              interactive=False, elem_id="real-video")
             summary = gr.Markdown(elem_id="real-summary")
+            bvh_units = bvh_units_dropdown("real-bvh-units")
             downloads = gr.File(label="Downloads: edited BVH, NPY joints and features, side-by-side MP4",
                                 file_count="multiple", interactive=False, elem_id="real-downloads")
     return RealPanel(upload, clip, source, mode, mode_help, target, reweight_word, reweight_scale, mirror,
-                     inversion, steps, cfg, foot_lock, button, video, summary, downloads)
+                     inversion, steps, cfg, foot_lock, button, video, summary, downloads, bvh_units)
 
 
 def real_markdown(result: Result) -> str:

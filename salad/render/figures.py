@@ -18,6 +18,8 @@ if TYPE_CHECKING:
 
 PART_LABELS = tuple(n.replace("_", " ") for n in sk.BODY_PARTS.names)
 MAX_FIGURE_FRAMES = 300     # keeps the figure's JSON small enough for a browser
+BODY_BOX = 2.2              # metres: the side of the box the "body" view keeps around the character
+VIEWS = ("body", "path")
 FONT = "DejaVu Sans, Arial, sans-serif"
 
 
@@ -90,13 +92,26 @@ def _discrete_colorscale() -> list[list]:
     return scale
 
 
-def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = None) -> "go.Figure":
+def _body_boxes(pj: np.ndarray, shown: np.ndarray) -> tuple[np.ndarray, float]:
+    """Per shown frame, the (x, y) ranges of a BODY_BOX square centred on the root, and the box's half side."""
+    half = BODY_BOX / 2
+    centres = pj[shown, 0, :2]
+    return np.stack([centres - half, centres + half], axis=-1), half
+
+
+def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = None,
+                    view: str = "body") -> "go.Figure":
     """An orbitable 3D skeleton with a frame slider and play/pause; parts coloured, floor
-    drawn, equal aspect. joints: (T, 22, 3) metres, Y up."""
+    drawn, equal aspect. joints: (T, 22, 3) metres, Y up. view "body": a BODY_BOX metre box
+    centred on the root that moves with it from frame to frame (each frame carries its scene
+    ranges), so the body fills the view however far the motion travels; "path": one box
+    around the whole motion."""
     import plotly.graph_objects as go
 
     from .video import _check_joints
 
+    if view not in VIEWS:
+        raise ValueError(f"view must be one of {', '.join(VIEWS)}, got {view!r}")
     j = _check_joints(joints)
     fps = _check_fps(fps)
     stride = int(np.ceil(len(j) / MAX_FIGURE_FRAMES))
@@ -104,16 +119,24 @@ def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = Non
     pj = _to_plot(j)
 
     lo, hi = pj.reshape(-1, 3).min(0), pj.reshape(-1, 3).max(0)
-    centre = (lo + hi) / 2
-    half = max(float((hi - lo)[:2].max()) / 2 + 0.4, 1.0)
-    x_rng = [centre[0] - half, centre[0] + half]
-    y_rng = [centre[1] - half, centre[1] + half]
-    z_rng = [0.0, max(float(hi[2]) + 0.2, 2.0)]
+    if view == "body":
+        boxes, half = _body_boxes(pj, shown)
+        x_rng, y_rng = boxes[0, 0].tolist(), boxes[0, 1].tolist()
+        # the floor covers every box the view will visit
+        floor_lo, floor_hi = boxes[:, :, 0].min(0), boxes[:, :, 1].max(0)
+        z_rng = [0.0, max(float(hi[2]) + 0.2, BODY_BOX)]
+    else:
+        centre = (lo + hi) / 2
+        half = max(float((hi - lo)[:2].max()) / 2 + 0.4, 1.0)
+        x_rng = [centre[0] - half, centre[0] + half]
+        y_rng = [centre[1] - half, centre[1] + half]
+        floor_lo, floor_hi = np.array([x_rng[0], y_rng[0]]), np.array([x_rng[1], y_rng[1]])
+        z_rng = [0.0, max(float(hi[2]) + 0.2, 2.0)]
 
     # Floor: a checker of 0.5 m tiles under the whole motion.
     tile = style.FLOOR_TILE
-    ix = np.arange(np.floor(x_rng[0] / tile), np.ceil(x_rng[1] / tile))
-    iy = np.arange(np.floor(y_rng[0] / tile), np.ceil(y_rng[1] / tile))
+    ix = np.arange(np.floor(floor_lo[0] / tile), np.ceil(floor_hi[0] / tile))
+    iy = np.arange(np.floor(floor_lo[1] / tile), np.ceil(floor_hi[1] / tile))
     gx, gy = np.meshgrid(ix, iy, indexing="ij")
     gx, gy = gx.ravel(), gy.ravel()
     corners = np.array([[0, 0], [1, 0], [1, 1], [0, 1]])
@@ -137,6 +160,12 @@ def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = Non
         pts[is_break] = np.nan
         return dict(x=pts[:, 0], y=pts[:, 1], z=pts[:, 2])
 
+    def box(k: int) -> dict:
+        if view != "body":
+            return {}
+        return dict(layout=dict(scene=dict(xaxis=dict(range=boxes[k, 0].tolist()),
+                                           yaxis=dict(range=boxes[k, 1].tolist()))))
+
     # One trace for the whole body, coloured per vertex through a stepped colour scale:
     # frames then only carry coordinates, which keeps building and playing them fast.
     sizes = np.where(idx == HEAD, 13, 5)
@@ -150,24 +179,29 @@ def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = Non
                            marker=dict(color=_hex(style.PART_COLORS[i]), size=8), hoverinfo="skip")
               for i in range(sk.BODY_PARTS.size)]
     fig = go.Figure(data=[floor, path, body] + legend)
-    fig.frames = [go.Frame(data=[dict(type="scatter3d", **xyz(int(t)))], traces=[2], name=str(int(t)))
-                  for t in shown]
+    fig.frames = [go.Frame(data=[dict(type="scatter3d", **xyz(int(t)))], traces=[2], name=str(int(t)), **box(k))
+                  for k, t in enumerate(shown)]
     frame_ms = 1000.0 * stride / fps
     steps = [dict(method="animate", label=f"{t / fps:.2f}",
                   args=[[str(int(t))], dict(mode="immediate", frame=dict(duration=0, redraw=True),
                                             transition=dict(duration=0))]) for t in shown]
+    axis = dict(backgroundcolor=_hex(style.BACKGROUND), tickfont=dict(size=9), title_font=dict(size=11))
+    # closer in the body view: its box holds little more than the body
+    eye = dict(x=1.2, y=0.85, z=0.5) if view == "body" else dict(x=1.35, y=0.95, z=0.55)
     fig.update_layout(
         title=dict(text=title or "", x=0.02, font=dict(family=FONT, size=16)),
         font=dict(family=FONT), paper_bgcolor="white", margin=dict(l=0, r=0, t=40 if title else 10, b=0),
-        legend=dict(orientation="h", y=1.0, x=0.5, xanchor="center", yanchor="bottom",
+        # Above the scene, wrapping into rows as the width requires; Plotly grows the top margin to fit.
+        modebar=dict(orientation="v"),     # down the right side, off the legend
+        legend=dict(orientation="h", y=1.0, x=0.0, xanchor="left", yanchor="bottom",
                     itemclick=False, itemdoubleclick=False, font=dict(size=11)),
         scene=dict(
-            xaxis=dict(title="z (m), forward", range=x_rng, backgroundcolor=_hex(style.BACKGROUND)),
-            yaxis=dict(title="x (m), left", range=y_rng, backgroundcolor=_hex(style.BACKGROUND)),
-            zaxis=dict(title="y (m), up", range=z_rng, backgroundcolor=_hex(style.BACKGROUND)),
+            xaxis=dict(title="z (m), forward", range=x_rng, **axis),
+            yaxis=dict(title="x (m), left", range=y_rng, **axis),
+            zaxis=dict(title="y (m), up", range=z_rng, **axis),
             aspectmode="manual",
             aspectratio=dict(x=1.0, y=1.0, z=(z_rng[1] - z_rng[0]) / (2 * half)),
-            camera=dict(eye=dict(x=1.35, y=0.95, z=0.55), up=dict(x=0, y=0, z=1)),
+            camera=dict(eye=eye, up=dict(x=0, y=0, z=1)),
         ),
         updatemenus=[dict(
             type="buttons", direction="left", x=0.0, y=0.0, xanchor="left", yanchor="top",
@@ -178,7 +212,10 @@ def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = Non
                      dict(label="❚❚ pause", method="animate",
                           args=[[None], dict(frame=dict(duration=0, redraw=False), mode="immediate",
                                              transition=dict(duration=0))])])],
-        sliders=[dict(active=0, steps=steps, x=0.16, len=0.84, y=0.0, yanchor="top", pad=dict(t=20),
+        # Plotly labels only every n-th step where the labels would collide; only those steps get a
+        # tick, as a tick per frame runs together into a bar.
+        sliders=[dict(active=0, steps=steps, x=0.16, len=0.84, y=0.0, yanchor="top", pad=dict(t=20, l=14, r=14),
+                      ticklen=6, minorticklen=0, font=dict(size=10),
                       currentvalue=dict(prefix="t = ", suffix=" s", font=dict(size=12)))],
     )
     return fig

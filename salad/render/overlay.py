@@ -30,6 +30,31 @@ def font(kind: str, px: int) -> ImageFont.ImageFont:
     return ImageFont.load_default(px)
 
 
+# DejaVu has no CJK glyphs; text with any is drawn in a CJK font when one is installed
+# (fonts-wqy-zenhei, fonts-noto-cjk), else in DejaVu, which shows boxes for the missing glyphs.
+_CJK_FONTS = (Path("/usr/share/fonts/truetype/wqy/wqy-zenhei.ttc"),
+              Path("/usr/share/fonts/opentype/noto/NotoSansCJK-Regular.ttc"),
+              Path("/usr/share/fonts/opentype/noto/NotoSansCJK-Bold.ttc"))
+
+
+def _has_cjk(text: str) -> bool:
+    # CJK radicals, kana, ideographs, Hangul and full-width forms all lie at or above U+2E80
+    return any(ord(c) >= 0x2E80 for c in text)
+
+
+@lru_cache(maxsize=16)
+def _cjk_font(px: int) -> ImageFont.ImageFont | None:
+    for path in _CJK_FONTS:
+        if path.is_file():
+            return ImageFont.truetype(str(path), px)
+    return None
+
+
+def text_font(text: str, kind: str, px: int) -> ImageFont.ImageFont:
+    """font(kind, px), or a CJK font at px when `text` needs one and one is installed."""
+    return (_cjk_font(px) if _has_cjk(text) else None) or font(kind, px)
+
+
 class Patch:
     """A premultiplied RGBA sprite placed at (x, y) that blends onto uint8 frames."""
 
@@ -77,7 +102,7 @@ def label_patch(text: str, frame_w: int, frame_h: int, x: int | None = None, y: 
                 bold: bool = True, max_lines: int = 2, scale: float = 1.0) -> Patch:
     """Dark text on a rounded, translucent light plate; top-left by default."""
     px = max(11, int(round(frame_h * 0.037 * scale)))
-    fnt = font("bold" if bold else "regular", px)
+    fnt = text_font(text, "bold" if bold else "regular", px)
     pad = max(4, px // 3)
     margin = max(6, frame_h // 40)
     lines = _wrap(text, fnt, frame_w - 2 * margin - 2 * pad, max_lines)
@@ -96,7 +121,7 @@ def label_patch(text: str, frame_w: int, frame_h: int, x: int | None = None, y: 
 def legend_patch(frame_w: int, frame_h: int, cmap: str, label: str) -> Patch:
     """A small colour bar with its label and 0/1 ends, bottom-left, for tinted renders."""
     px = max(10, int(round(frame_h * 0.027)))
-    fnt = font("regular", px)
+    fnt = text_font(label, "regular", px)
     margin = max(6, frame_h // 40)
     pad = max(3, px // 3)
     asc, desc = fnt.getmetrics()
