@@ -292,7 +292,7 @@ class Studio:
         return result.cached(("edit downloads",), make)
 
     # ------------------------------------------------------------ downloads
-    def downloads(self, result: Result, progress: Progress = quiet) -> list[Path]:
+    def downloads(self, result: Result, progress: StageProgress = quiet) -> list[Path]:
         """Every download of a result, in the order the page lists them."""
         if result.kind == "edit":
             return self.edit_downloads(result, progress)

@@ -245,9 +245,9 @@ class Handlers:
         """A file was uploaded: it is read now, so that a file the edit could not use is reported at
         once rather than on pressing Edit, and it replaces a picked test clip."""
         self._note_upload(upload, request)
-        up = real_edit.upload_path(upload, self.studio.workspace.gradio_cache)
+        up = real_input.upload_path(upload, self.studio.workspace.gradio_cache)
         if up is not None:
-            real_edit.read_upload(up.path, up.name)
+            real_input.read_upload(up.path, up.name)
         return ""
 
     def edit_real(self, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion, steps,
