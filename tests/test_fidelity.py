@@ -5,6 +5,8 @@ import pytest
 
 from conftest import synthetic_walk, write_tiny_dataset
 from salad.data.captions import CONTENT_PHRASES, STYLE_PHRASES, caption_variants
+from salad.eval import EMBEDDED_CLASSIFIER
+from salad.eval.classifiers import load_classifier
 from salad.eval.fidelity import (RULES, checks_for, evaluate_fidelity, fidelity_classes, judge, measure,
                                  report_markdown)
 from salad.eval.paraphrases import HELD_OUT
@@ -61,7 +63,8 @@ def test_a_fidelity_run_with_the_embedded_model(tmp_path):
     split = {n: f for f in ("train", "val", "test") for n in (root / f"{f}.txt").read_text().split()}
     (root / "labels.json").write_text(json.dumps(
         {n: {"content": "walk", "style": "normal", "split": split[n]} for n in names}))
-    res = evaluate_fidelity(load_pipeline(), root, seeds=1, steps=4, classes=["walk", "kick"])
+    clf = load_classifier(EMBEDDED_CLASSIFIER)
+    res = evaluate_fidelity(load_pipeline(), root, seeds=1, steps=4, classes=["walk", "kick"], classifier=clf)
     (row,) = res["rows"]                                        # kick has no clips in this dataset
     assert row["class"] == "walk" and row["reference"]["clips"] == 12 and row["reference"]["splits"] == "all"
     assert len(row["reference"]["measures"]) == 12                      # 2 test clips only: all splits
@@ -72,9 +75,17 @@ def test_a_fidelity_run_with_the_embedded_model(tmp_path):
         assert row[variant]["pass"] == all(c["pass"] for c in row[variant]["checks"].values())
     # the foot lock changes only the feet: durations and the root path stay the same
     assert row["raw"]["checks"]["duration_s"] == row["clean"]["checks"]["duration_s"]
+    # the classifier's verdict on every generated motion, counted per class and overall
+    got = row["classified"]
+    assert got["total"] == len(row["samples"]) and len(got["predicted"]) == got["total"]
+    assert set(got["predicted"]) <= set(clf.classes["content"]) and "style_correct" not in got
+    assert got["content_correct"] == sum(s["classified_as"] == "walk" for s in row["samples"])
+    assert res["summary"]["classified"]["content_correct"] == got["content_correct"]
+    assert res["summary"]["classified"]["share"] == pytest.approx(got["content_correct"] / got["total"], abs=1e-4)
     json.dumps(res)                                                     # results.json holds all of it
     report = report_markdown(res)
     assert "| walk | 12 (all) |" in report and "after the foot lock" in report
+    assert f"{got['content_correct']}/{got['total']} |" in report and "in the prompt's action" in report
 
 
 def test_reference_clips_follow_the_prompts_style_and_widen_only_when_too_few(tmp_path):

@@ -9,7 +9,8 @@ import re
 from pathlib import Path
 
 from ..data.labels import read_labels
-from ..eval import EMBEDDED_EVALUATOR
+from ..eval import EMBEDDED_CLASSIFIER, EMBEDDED_EVALUATOR
+from ..eval.classifiers import load_classifier
 from ..eval.control_bench import OMNICONTROL_JOINTS, evaluate_control, parse_density, parse_joints, write_control_report
 from ..eval.edit_bench import run_edit_benchmark
 from ..eval.edit_suite import DEFAULT_SCALES, MODES, default_suite
@@ -140,7 +141,6 @@ def cmd_eval_control(a) -> int:
 
 def add_eval_edit(sub) -> argparse.ArgumentParser:
     """Register `eval-edit` on the CLI's subparsers."""
-    from ..eval import EMBEDDED_CLASSIFIER
     p = sub.add_parser("eval-edit", help="editing benchmark: success and preservation of attention edits vs "
                                          "plain regeneration")
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
@@ -173,7 +173,6 @@ def _parse_list(text: str, what: str, kind=str) -> list:
 
 def cmd_eval_edit(a) -> int:
     from ..pipeline import load_pipeline
-    from ..eval.classifiers import load_classifier
     from ..eval.edit_report import format_report, write_results
 
     modes = _parse_list(a.modes, "modes")
@@ -207,6 +206,9 @@ def add_eval_fidelity(sub) -> None:
     p.add_argument("--split", default="test")
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
+    p.add_argument("--classifier", default=str(EMBEDDED_CLASSIFIER),
+                   help="classifier that judges which action each generated motion shows (default: the one shipped "
+                        "in assets/eval); 'none' skips it")
     p.set_defaults(func=cmd_eval_fidelity)
 
 
@@ -216,10 +218,14 @@ def cmd_eval_fidelity(a) -> int:
     classes = [c.strip() for c in a.classes.split(",") if c.strip()] if a.classes else None
     fidelity_classes(classes)                                    # unknown names fail before loading anything
     read_labels(a.data)
+    clf = None
+    if a.classifier != "none":
+        clf = load_classifier(a.classifier)
+        clf.meta["path"] = str(a.classifier)
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None)
     bar, update = progress_bar("generating")
     results = evaluate_fidelity(pipe, a.data, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
-                                classes=classes, split=a.split, progress=update)
+                                classes=classes, split=a.split, classifier=clf, progress=update)
     bar.close()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -267,7 +273,6 @@ def cmd_eval_length(a) -> int:
 
 
 def add_eval_real_edit(sub) -> None:
-    from ..eval import EMBEDDED_CLASSIFIER
     p = sub.add_parser("eval-real-edit", help="inversion fidelity and edit success on real test motions")
     p.add_argument("--data", required=True, help="labelled HumanML3D-layout dataset (labels.json, test.txt)")
     p.add_argument("--classifier", default=str(EMBEDDED_CLASSIFIER),

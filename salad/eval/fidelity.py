@@ -197,8 +197,10 @@ def _shown(path: str) -> str:
 
 
 def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int = 50, cfg: float = 7.5,
-                      sampler: str = "ddim", classes=None, split: str = "test",
+                      sampler: str = "ddim", classes=None, split: str = "test", classifier=None,
                       progress: Callable[[int, int], None] | None = None) -> dict:
+    """Per-class checks of generated against real motion; with a `classifier` (salad.eval.classifiers), also
+    the share of generated motions it puts in the prompt's action (and style, for styled classes)."""
     if not isinstance(seeds, int) or seeds < 1:
         raise ValueError(f"seeds must be a positive integer, got {seeds!r}")
     labels = read_labels(data_root)
@@ -217,7 +219,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int = 
         # the model makes at most its canvas: a longer capture counts as a full-canvas motion
         for r in real:
             r["duration_s"] = min(r["duration_s"], pipe.max_seconds)
-        raw, clean, samples = [], [], []
+        raw, clean, samples, features = [], [], [], []
         for prompt in cls.prompts:
             for seed in range(seeds):
                 m = pipe.generate(prompt, seconds=None, seed=seed, steps=steps, cfg=cfg, sampler=sampler,
@@ -225,6 +227,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int = 
                 locked, _ = clean_motion(m.joints, m.features)
                 raw.append(measure(m.joints))
                 clean.append(measure(locked))
+                features.append(m.features)
                 # every measure is kept, so that the table can be judged again under other rules
                 samples.append({"prompt": prompt, "seed": seed, "frames": m.frames, "raw": raw[-1],
                                 "clean": clean[-1]})
@@ -238,11 +241,36 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int = 
             row[name] = {"checks": judged, "pass": all(v["pass"] for v in judged.values()),
                          "contact_slide_share": round(_median(gen, "contact_slide_share"), 4)}
         row["real_contact_slide_share"] = round(_median(real, "contact_slide_share"), 4)
+        if classifier is not None:
+            row["classified"] = classified(classifier, cls, features)
+            for sample, content in zip(samples, row["classified"]["predicted"]):
+                sample["classified_as"] = content
         rows.append(row)
     return {"rows": rows, "rules": RULES, "settings": {
         "seeds": seeds, "steps": steps, "cfg": cfg, "sampler": sampler, "split": split, "model": _shown(pipe.source),
         "length": "auto", "seconds": round(time.perf_counter() - started, 1)},
-        "summary": {v: {"passed": sum(r[v]["pass"] for r in rows), "classes": len(rows)} for v in ("raw", "clean")}}
+        "summary": summary(rows, classifier)}
+
+
+def classified(classifier, cls: FidelityClass, features: list) -> dict:
+    """How many of a class's generated motions the classifier calls the prompt's action (and style)."""
+    pred = classifier.predict(features)
+    content_ok = [p == cls.content for p in pred["content"]]
+    out = {"predicted": list(pred["content"]), "content_correct": sum(content_ok), "total": len(features)}
+    if cls.style is not None and "style" in pred:
+        out["style_correct"] = sum(p == cls.style for p in pred["style"])
+    return out
+
+
+def summary(rows: list[dict], classifier=None) -> dict:
+    out = {v: {"passed": sum(r[v]["pass"] for r in rows), "classes": len(rows)} for v in ("raw", "clean")}
+    if classifier is not None:
+        correct = sum(r["classified"]["content_correct"] for r in rows)
+        total = sum(r["classified"]["total"] for r in rows)
+        out["classified"] = {"content_correct": correct, "total": total,
+                             "share": round(correct / total, 4) if total else None,
+                             "classifier": _shown(getattr(classifier, "meta", {}).get("path", "?"))}
+    return out
 
 
 def _cell(check: str, v: dict) -> str:
@@ -250,6 +278,11 @@ def _cell(check: str, v: dict) -> str:
         return f"{v['generated']:.2f} {v['real']}" + ("" if v["pass"] else " ✗")
     fmt = "{:.0f}" if check == "turn_deg" else "{:.2f}"
     return f"{fmt.format(v['generated'])} / {fmt.format(v['real'])}" + ("" if v["pass"] else " ✗")
+
+
+def _classified_cell(c: dict) -> str:
+    cell = f"{c['content_correct']}/{c['total']}"
+    return cell + (f", style {c['style_correct']}/{c['total']}" if "style_correct" in c else "")
 
 
 def report_markdown(results: dict) -> str:
@@ -262,18 +295,25 @@ def report_markdown(results: dict) -> str:
              "✗ marks a failed check; side: share of motions acting with the real clips' hand.", "",
              "Rules:", ""]
     lines += [f"- `{k}`: {v}" for k, v in results["rules"].items()]
+    clf = results["summary"].get("classified")
+    if clf:
+        lines += ["", f"The classifier (`{clf['classifier']}`) puts {clf['content_correct']} of {clf['total']} raw motions "
+                  f"({100 * clf['share']:.0f}%) in the prompt's action; per class in the column `classified` "
+                  "(action, then style for styled classes)."]
     checks = list(RULES)
     for variant in ("raw", "clean"):
         summ = results["summary"][variant]
         title = "raw decoder output" if variant == "raw" else "after the foot lock"
         lines += ["", f"## {title}: {summ['passed']} of {summ['classes']} classes pass", "",
-                  "| class | ref. clips | pass | " + " | ".join(checks) + " | contact slide |",
-                  "|---|---|---|" + "---|" * (len(checks) + 1)]
+                  "| class | ref. clips | pass | " + " | ".join(checks) + " | contact slide |"
+                  + (" classified |" if clf else ""),
+                  "|---|---|---|" + "---|" * (len(checks) + 1) + ("---|" if clf else "")]
         for r in results["rows"]:
             v = r[variant]
             cells = [_cell(c, v["checks"][c]) if c in v["checks"] else "" for c in checks]
             used = r["reference"]["splits"]
             ref = f"{r['reference']['clips']}" + ("" if used == s["split"] else f" ({used})")
             lines.append(f"| {r['class']} | {ref} | {'yes' if v['pass'] else '**no**'} | " + " | ".join(cells)
-                         + f" | {v['contact_slide_share']:.2f} / {r['real_contact_slide_share']:.2f} |")
+                         + f" | {v['contact_slide_share']:.2f} / {r['real_contact_slide_share']:.2f} |"
+                         + (f" {_classified_cell(r['classified'])} |" if clf else ""))
     return "\n".join(lines) + "\n"
