@@ -43,7 +43,8 @@ def _load(settings: Settings):
     from salad.pipeline import load_pipeline
 
     try:
-        return load_pipeline(settings.model, bf16=settings.bf16, threads=settings.threads), None
+        # the CPU, as before the pipeline took a device: the studio has not been tried on a GPU
+        return load_pipeline(settings.model, bf16=settings.bf16, threads=settings.threads, device="cpu"), None
     except Exception as exc:     # any failure to load becomes the error page, not a crash
         log.error("no model: %s", exc)
         return None, f"{type(exc).__name__}: {exc}"

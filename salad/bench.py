@@ -48,12 +48,15 @@ def _paper_pipeline(bf16: bool):
     torch.manual_seed(0)
     den = Denoiser(DenoiserConfig(text_dim=enc.dim))
     norm = Normalizer(np.zeros(263, np.float32), np.ones(263, np.float32))
-    return Pipeline(MotionVAE(), norm, 1.0, den, enc, NoiseSchedule(), canvas_frames=196, bf16=bf16)
+    return Pipeline(MotionVAE(), norm, 1.0, den, enc, NoiseSchedule(), canvas_frames=196, bf16=bf16, device="cpu")
 
 
 def _load(model: str, bf16: bool):
+    """On the CPU: the bench measures this machine's CPU (its matmul peak, threads and memory)."""
     from .pipeline import load_pipeline
-    return _paper_pipeline(bf16) if model == "paper" else load_pipeline(None if model == "embedded" else model, bf16=bf16)
+    if model == "paper":
+        return _paper_pipeline(bf16)
+    return load_pipeline(None if model == "embedded" else model, bf16=bf16, device="cpu")
 
 
 def _denoiser_flops(pipe, batch: int, seconds: float) -> float:

@@ -29,7 +29,7 @@ from .models.io import load_denoiser, load_vae, vae_latent_checksums
 from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
 from .models.vocabulary import PromptCheck
-from .precision import bf16_supported
+from .precision import bf16_supported, resolve_device
 from .progress import Progress
 from .motion.cleanup import clean_motion
 from .motion.control import control_errors, make_signal
@@ -45,11 +45,13 @@ ACTIVATION_THRESHOLD = 0.5
 class Pipeline:
     def __init__(self, vae: MotionVAE, normalizer: Normalizer, latent_scale: float, denoiser: Denoiser,
                  text_encoder: TextEncoder, schedule: NoiseSchedule, canvas_frames: int, bf16: bool = True,
-                 source: str = "", prompt_check: PromptCheck | None = None):
-        self.vae, self.normalizer, self.latent_scale = vae.eval(), normalizer, latent_scale
-        self.denoiser, self.text_encoder, self.schedule = denoiser.eval(), text_encoder, schedule
+                 source: str = "", prompt_check: PromptCheck | None = None, device: str | torch.device = "auto"):
+        self.device = resolve_device(device)
+        self.vae, self.normalizer, self.latent_scale = vae.eval().to(self.device), normalizer, latent_scale
+        self.denoiser, self.schedule = denoiser.eval().to(self.device), schedule
+        self.text_encoder = text_encoder.to(self.device)
         self.canvas_frames = canvas_frames
-        self.bf16 = bf16 and bf16_supported()
+        self.bf16 = bf16 and bf16_supported(self.device)
         self.source = source
         self.prompt_check = prompt_check
 
@@ -101,16 +103,17 @@ class Pipeline:
 
     # ------------------------------------------------------------ building blocks
     def autocast(self):
-        return torch.autocast("cpu", dtype=torch.bfloat16) if self.bf16 else nullcontext()
+        return torch.autocast(self.device.type, dtype=torch.bfloat16) if self.bf16 else nullcontext()
 
     def encode_text(self, prompts: list[str]):
         """Token features for `prompts`, padded together (cached per prompt by the encoder)."""
         return self.text_encoder.encode(prompts)
 
     def noise(self, batch: int, frames: int, seed: int) -> torch.Tensor:
+        # drawn on the CPU whatever the device: a seed starts from the same noise on every machine
         g = torch.Generator().manual_seed(int(seed))
         c = self.denoiser.config
-        return torch.randn(batch, frames // 4, c.parts, c.latent_dim, generator=g)
+        return torch.randn(batch, frames // 4, c.parts, c.latent_dim, generator=g).to(self.device)
 
     def model_fn(self, text, auto: bool, frame_mask: torch.Tensor | None = None):
         """The denoiser as the sampler sees it: rows are [unconditional..., conditional...].
@@ -119,7 +122,7 @@ class Pipeline:
 
         def fn(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
             with self.autocast():
-                flags = torch.full((x.shape[0],), auto)
+                flags = torch.full((x.shape[0],), auto, device=x.device)
                 return self.denoiser(x, t, text.tokens, text.mask, rows_mask, pooled_text=text.pooled,
                                      auto_length=flags).float()
         return fn
@@ -132,12 +135,12 @@ class Pipeline:
         decoder marks as planted pinned): the joints carry the clean-up, the features stay the
         decoder's output, info["foot_lock"] says what moved."""
         feats, act_logits = self.vae.decode(latents / self.latent_scale)
-        feats = self.normalizer.denormalize(feats.float()).numpy()
+        feats = self.normalizer.denormalize(feats.float()).cpu().numpy()
         out = []
         for b in range(latents.shape[0]):
             n = feats.shape[1]
             if frames is None and act_logits is not None:
-                n = end_of_motion(torch.sigmoid(act_logits[b]).numpy())
+                n = end_of_motion(torch.sigmoid(act_logits[b]).cpu().numpy())
             f = feats[b, :n]
             joints, info = features_to_joints(f), {"auto_length": frames is None}
             if foot_lock:
@@ -182,7 +185,7 @@ class Pipeline:
                 raise ValueError(f"lengths must be multiples of 4 in {MIN_AUTO_FRAMES}..{self.canvas_frames}, got {n}")
         B, T = len(prompts), max(frames)
         text = self.encode_text([""] * B + prompts)
-        mask = torch.arange(T // 4)[None] < torch.tensor(frames)[:, None] // 4
+        mask = (torch.arange(T // 4)[None] < torch.tensor(frames)[:, None] // 4).to(self.device)
         noise = self.noise(B, T, seed) * mask[:, :, None, None]
         z = sample(self.model_fn(text, auto=False, frame_mask=mask), noise, self.schedule, sampler=sampler,
                    steps=steps, cfg_scale=cfg)
@@ -231,7 +234,8 @@ class Pipeline:
             feats, _ = self.vae.decode(z0 / self.latent_scale)
             return features_to_joints(self.normalizer.denormalize(feats))
 
-        loss = position_loss(joints_of, torch.from_numpy(sig.targets[:frames]), torch.from_numpy(sig.mask[:frames]))
+        loss = position_loss(joints_of, torch.from_numpy(sig.targets[:frames]).to(self.device),
+                             torch.from_numpy(sig.mask[:frames]).to(self.device))
         g = torch.Generator().manual_seed(int(seed) + 1)
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
         noise = self.noise(1, frames, seed).repeat(len(prompts), 1, 1, 1)     # one z_T for both edit branches
@@ -326,9 +330,11 @@ def end_of_motion(activation: np.ndarray, threshold: float = ACTIVATION_THRESHOL
 
 
 def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text_encoder: str | dict | None = None,
-                  threads: int | None = None) -> Pipeline:
+                  threads: int | None = None, device: str | torch.device = "auto") -> Pipeline:
     """Load a model directory holding `vae/` and `denoiser/` checkpoints. path=None means the
-    embedded model in assets/model (or $SALAD_MODEL)."""
+    embedded model in assets/model (or $SALAD_MODEL). device: "auto" (a CUDA GPU when torch sees
+    one, else the CPU), "cpu", "cuda" or "cuda:N"; the denoiser, the VAE and the text encoder run there."""
+    device = resolve_device(device)     # a GPU that is not there fails before seconds of loading
     if threads:
         torch.set_num_threads(threads)
     root = Path(path or os.environ.get("SALAD_MODEL") or EMBEDDED_MODEL)
@@ -349,4 +355,4 @@ def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text
                               f"{encoder.name} encoder gives {encoder.dim}")
     schedule = NoiseSchedule(from_dict(DiffusionConfig, cfg["diffusion"]))
     return Pipeline(vae, norm, scale, denoiser, encoder, schedule, int(cfg["canvas_frames"]), bf16=bf16,
-                    source=str(root), prompt_check=PromptCheck.load(root, encoder))
+                    source=str(root), prompt_check=PromptCheck.load(root, encoder), device=device)

@@ -41,6 +41,20 @@ def print_warnings(*motions) -> None:
                 print(f"warning: {m.text!r}: {w}", file=sys.stderr)
 
 
+def add_device(parser: argparse.ArgumentParser) -> None:
+    """--device, for every command that runs the model."""
+    # Spelled out to keep the CLI free of torch; salad.precision.resolve_device reads it.
+    parser.add_argument("--device", default="auto",
+                        help="where the model runs: auto (default: a CUDA GPU when torch sees one, else the CPU), "
+                             "cpu, cuda or cuda:N")
+
+
+def device_of(a):
+    """The command's --device, checked before anything slow: a GPU that is not there fails at once."""
+    from ..precision import resolve_device
+    return resolve_device(a.device)
+
+
 def add_bvh_units(parser: argparse.ArgumentParser) -> None:
     """--bvh-units, for every command that can write BVH files."""
     # Spelled out to keep the CLI free of torch; tests check it against salad.motion.bvh_export.UNITS_PER_METRE.

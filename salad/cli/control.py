@@ -10,7 +10,7 @@ from ..motion.control import (PATH_PRESETS, ControlSignal, control_errors, crop_
                              read_targets)
 from ..motion.motion import check_output_paths
 from ..motion.representation import FPS
-from .common import add_bvh_units, print_warnings, progress_bar
+from .common import add_bvh_units, add_device, device_of, print_warnings, progress_bar
 
 DEFAULT_PATH_SECONDS = 5.0
 SOURCES = ("path", "path_preset", "mola", "targets", "keyframes", "lower_body_from")
@@ -50,6 +50,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     c.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     c.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
     c.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
+    add_device(c)
     add_bvh_units(c)
     c.set_defaults(func=cmd_control)
     return c
@@ -100,12 +101,13 @@ def _error_line(m, sig: ControlSignal) -> str:
 def cmd_control(a) -> int:
     from ..pipeline import load_pipeline
 
+    device = device_of(a)
     sig = signal_from_args(a)
     outs = check_output_paths(a.output)
     if a.path is not None and abs(sig.targets[0, 0, 0]) + abs(sig.targets[0, 0, 2]) > 0.05:
         print("note: generated motions start at the origin; this path starts "
               f"{math.hypot(sig.targets[0, 0, 0], sig.targets[0, 0, 2]):.2f} m away from it")
-    pipe = load_pipeline(a.model, bf16=not a.fp32)
+    pipe = load_pipeline(a.model, bf16=not a.fp32, device=device)
     if sig.frames > pipe.canvas_frames:
         raise ValueError(f"the control signal spans {sig.frames} frames ({sig.frames / FPS:g} s); the model makes at "
                          f"most {pipe.canvas_frames} ({pipe.max_seconds:g} s): pass a shorter --seconds")

@@ -6,7 +6,7 @@ from pathlib import Path
 from ..editing.spec import DEFAULT_SELF_INJECT, EDIT_MODES, MIRROR_PARTS, EditSpec
 from ..editing.real import DEFAULT_INVERSION, edit_inverted, invert_real
 from ..eval.edit_metrics import mpjpe
-from .common import add_bvh_units, parse_reweight, print_warnings, progress_bar
+from .common import add_bvh_units, add_device, device_of, parse_reweight, print_warnings, progress_bar
 
 
 def edit_spec(a) -> EditSpec:
@@ -18,8 +18,9 @@ def edit_spec(a) -> EditSpec:
 def cmd_edit(a) -> int:
     from ..pipeline import load_pipeline
     from ..render import render_side_by_side
-    pipe = load_pipeline(a.model, bf16=not a.fp32)
+    device = device_of(a)
     spec = edit_spec(a)
+    pipe = load_pipeline(a.model, bf16=not a.fp32, device=device)
     bar, update = progress_bar("editing")
     res = pipe.edit(a.source, seed=a.seed, seconds=a.seconds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                     progress=update, foot_lock=not a.no_foot_lock, spec=spec)
@@ -54,6 +55,7 @@ def add_edit(sub) -> None:
     e.add_argument("--model", default=None)
     e.add_argument("--fp32", action="store_true")
     e.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
+    add_device(e)
     add_bvh_units(e)
     e.set_defaults(func=cmd_edit)
 
@@ -85,6 +87,7 @@ def add_edit_real(sub) -> None:
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--bf16", action="store_true", help="run the denoiser in bf16 (faster, less exact inversion)")
     p.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
+    add_device(p)
     add_bvh_units(p)
     p.set_defaults(func=cmd_edit_real)
 
@@ -93,11 +96,12 @@ def cmd_edit_real(a) -> int:
     from ..motion.motion import check_output_paths
     from ..pipeline import load_pipeline
 
+    device = device_of(a)
     spec = edit_spec(a)
     check_output_paths(a.output + a.reconstruction)
     if a.side_by_side and Path(a.side_by_side).suffix.lower() != ".mp4":
         raise ValueError(f"{a.side_by_side}: unsupported output type for --side-by-side; use .mp4")
-    pipe = load_pipeline(a.model)
+    pipe = load_pipeline(a.model, device=device)
     pipe.check_edit(a.source, spec)
     steps, cfg, _, _ = pipe.check_sampling(a.steps, a.cfg, "ddim")
     from ..diffusion.inversion import METHODS

@@ -18,7 +18,7 @@ from ..eval.fidelity import evaluate_fidelity, fidelity_classes, report_markdown
 from ..eval.length_dist import DEFAULT_BIN_FRAMES, MIN_FRAMES, evaluate_lengths, write_length_report
 from ..eval.real_edit_bench import SDEDIT_STRENGTHS, run_real_edit_bench
 from ..files import atomic_write_text
-from .common import progress_bar
+from .common import add_device, device_of, progress_bar
 
 
 def cmd_eval(a) -> int:
@@ -28,6 +28,7 @@ def cmd_eval(a) -> int:
     from ..eval.generators import ModelGenerator, VAEReconstruction
     from ..eval.t2m import evaluate_t2m, ground_truth_generator, write_report
     from ..pipeline import load_pipeline
+    device = device_of(a)
     if a.threads:
         torch.set_num_threads(a.threads)
     ev = load_evaluator(a.evaluator)
@@ -36,7 +37,7 @@ def cmd_eval(a) -> int:
     rows = {"Real motion": evaluate_t2m(ground_truth_generator(ds), ds, ev, repeats=a.repeats, seed=a.seed,
                                         progress=True)}
     for model in [] if a.real_only else a.model or [None]:
-        pipe = load_pipeline(model, bf16=not a.fp32)
+        pipe = load_pipeline(model, bf16=not a.fp32, device=device)
         name = "SALAD (embedded)" if model is None else f"SALAD ({Path(model).name})"
         vae = VAEReconstruction(pipe)
         rows[f"{name} VAE reconstruction"] = evaluate_t2m(vae, ds, ev, repeats=1, seed=a.seed, progress=True)
@@ -69,6 +70,7 @@ def add_eval(sub) -> None:
     ev.add_argument("--fp32", action="store_true",
                     help="disable bf16 autocast (CPUs without bf16 run fp32 anyway); a run resumes only in the precision it started in")
     ev.add_argument("--out", required=True, help="directory for results.json and report.md")
+    add_device(ev)
     ev.set_defaults(func=cmd_eval)
 
 
@@ -106,6 +108,7 @@ def add_eval_control(sub) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
     p.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
+    add_device(p)
     p.set_defaults(func=cmd_eval_control)
     return p
 
@@ -115,6 +118,7 @@ def cmd_eval_control(a) -> int:
     from ..pipeline import load_pipeline
     from ..eval.evaluator import load_evaluator
 
+    device = device_of(a)
     joints = parse_joints(a.joints)
     parse_density(a.density)
     options = {"strength": _float_list(a.strength, "strength")}
@@ -128,7 +132,7 @@ def cmd_eval_control(a) -> int:
         raise ValueError(f"--out {out}: exists and is not a directory")
     ev = load_evaluator(a.evaluator)
     ds = MotionDataset(a.data, a.split, max_frames=10 ** 9)
-    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None)
+    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device)
     res = evaluate_control(pipe, ds, ev, samples=a.samples, steps=a.steps, cfg=a.cfg, settings=settings,
                            joints=joints, density=a.density, seed=a.seed, max_frames=a.max_frames,
                            progress=lambda msg: print(msg, flush=True))
@@ -157,6 +161,7 @@ def add_eval_edit(sub) -> argparse.ArgumentParser:
                    help="re-weighting scales, comma list in [-3, 3]")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
     p.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
+    add_device(p)
     p.set_defaults(func=cmd_eval_edit)
     return p
 
@@ -175,6 +180,7 @@ def cmd_eval_edit(a) -> int:
     from ..pipeline import load_pipeline
     from ..eval.edit_report import format_report, write_results
 
+    device = device_of(a)
     modes = _parse_list(a.modes, "modes")
     scales = _parse_list(a.scales, "scales", float)
     cases = default_suite(modes)
@@ -183,7 +189,7 @@ def cmd_eval_edit(a) -> int:
         raise ValueError(f"--out {out}: exists and is not a directory")
     clf = load_classifier(a.classifier)
     clf.meta["path"] = str(a.classifier)
-    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None)
+    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device)
     results = run_edit_benchmark(pipe, clf, cases, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                                  scales=scales, seed_base=a.seed, progress=lambda m: print(m, flush=True))
     write_results(results, out)
@@ -209,12 +215,14 @@ def add_eval_fidelity(sub) -> None:
     p.add_argument("--classifier", default=str(EMBEDDED_CLASSIFIER),
                    help="classifier that judges which action each generated motion shows (default: the one shipped "
                         "in assets/eval); 'none' skips it")
+    add_device(p)
     p.set_defaults(func=cmd_eval_fidelity)
 
 
 def cmd_eval_fidelity(a) -> int:
     from ..pipeline import load_pipeline
 
+    device = device_of(a)
     classes = [c.strip() for c in a.classes.split(",") if c.strip()] if a.classes else None
     fidelity_classes(classes)                                    # unknown names fail before loading anything
     read_labels(a.data)
@@ -222,7 +230,7 @@ def cmd_eval_fidelity(a) -> int:
     if a.classifier != "none":
         clf = load_classifier(a.classifier)
         clf.meta["path"] = str(a.classifier)
-    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None)
+    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device)
     bar, update = progress_bar("generating")
     results = evaluate_fidelity(pipe, a.data, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                                 classes=classes, split=a.split, classifier=clf, progress=update)
@@ -252,6 +260,7 @@ def add_eval_length(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
+    add_device(p)
     p.set_defaults(func=cmd_eval_length)
 
 
@@ -259,7 +268,7 @@ def cmd_eval_length(a) -> int:
     from ..data.dataset import MotionDataset
     from ..pipeline import load_pipeline
 
-    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None)
+    pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device_of(a))
     ds = MotionDataset(a.data, a.split, min_frames=MIN_FRAMES, max_frames=10 ** 9)
     labels = read_labels(a.data) if (Path(a.data) / "labels.json").is_file() else None
     bar, update = progress_bar("generating")
@@ -291,6 +300,7 @@ def add_eval_real_edit(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--uncorrected", action="store_true", help="also run each edit without per-step corrections")
     p.add_argument("--threads", type=int, default=0)
+    add_device(p)
     p.set_defaults(func=cmd_eval_real_edit)
 
 
@@ -306,7 +316,7 @@ def cmd_eval_real_edit(a) -> int:
     from ..pipeline import load_pipeline
     if a.threads:
         torch.set_num_threads(a.threads)
-    pipe = load_pipeline(a.model)
+    pipe = load_pipeline(a.model, device=device_of(a))
     run_real_edit_bench(pipe, a.data, a.classifier, a.out, clips=a.clips, edit_clips=a.edit_clips,
                         methods=_csv(a.methods), edit_methods=_csv(a.edit_methods), steps=a.steps, cfg=a.cfg,
                         strengths=_csv(a.sdedit, float), seed=a.seed, uncorrected=a.uncorrected)

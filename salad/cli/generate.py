@@ -1,14 +1,14 @@
 """`salad generate`: text -> motion files."""
 from __future__ import annotations
 
-from .common import add_bvh_units, print_warnings, progress_bar
+from .common import add_bvh_units, add_device, device_of, print_warnings, progress_bar
 
 
 def cmd_generate(a) -> int:
     from ..motion.motion import check_output_paths
     from ..pipeline import load_pipeline
     outs = check_output_paths(a.output)
-    pipe = load_pipeline(a.model, bf16=not a.fp32)
+    pipe = load_pipeline(a.model, bf16=not a.fp32, device=device_of(a))
     bar, update = progress_bar("sampling")
     motions = pipe.generate(a.prompt, seconds=a.seconds, seed=a.seed, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                             batch=a.batch, progress=update, foot_lock=not a.no_foot_lock)
@@ -37,5 +37,6 @@ def add_parser(sub) -> None:
     g.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     g.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
     g.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
+    add_device(g)
     add_bvh_units(g)
     g.set_defaults(func=cmd_generate)

@@ -160,7 +160,7 @@ def guided_sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, 
     for i, t in enumerate(ts):
         a_t = float(abar[t])
         a_prev = float(abar[ts[i + 1]]) if i + 1 < len(ts) else final
-        tt = torch.full((x.shape[0],), t, dtype=torch.long)
+        tt = torch.full((x.shape[0],), t, dtype=torch.long, device=x.device)
         rho = step_size(t, strength, schedule.config.train_steps)
         r = max(1, int(rep(i, len(ts))))
         for k in range(r):
@@ -175,7 +175,8 @@ def guided_sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, 
             if k < r - 1:
                 # time travel: back to t with fresh noise, then denoise again with a new prediction
                 ratio = a_t / a_prev
-                fresh = torch.randn(fresh_shape, generator=generator, dtype=x.dtype).expand_as(x)
+                # drawn where `generator` lives (the CPU), so a seed re-noises alike on every device
+                fresh = torch.randn(fresh_shape, generator=generator, dtype=x.dtype).to(x.device).expand_as(x)
                 x = ratio ** 0.5 * x_prev + (1 - ratio) ** 0.5 * fresh
         x = x_prev.detach()
         if on_step is not None:

@@ -108,8 +108,9 @@ class Denoise:
             raise ValueError(f"{len(text)} text rows for {n} latent rows")
         ctx = nullcontext() if self.fp32 or not self.pipe.bf16 else self.pipe.autocast()
         with ctx:
-            out = self.pipe.denoiser(x, torch.full((n,), int(t), dtype=torch.long), text.tokens, text.mask, None,
-                                     pooled_text=text.pooled, auto_length=torch.zeros(n, dtype=torch.bool))
+            out = self.pipe.denoiser(x, torch.full((n,), int(t), dtype=torch.long, device=x.device), text.tokens,
+                                     text.mask, None, pooled_text=text.pooled,
+                                     auto_length=torch.zeros(n, dtype=torch.bool, device=x.device))
         return out.float()
 
     def guided(self, x: torch.Tensor, t: int, text: TextFeatures, cfg: float) -> torch.Tensor:
@@ -124,7 +125,7 @@ class Denoise:
 def rows(text: TextFeatures, sel) -> TextFeatures:
     """A row subset of batched text features (a slice or a list of row indices)."""
     idx = list(range(len(text)))[sel] if isinstance(sel, slice) else list(sel)
-    t = torch.tensor(idx, dtype=torch.long)
+    t = torch.tensor(idx, dtype=torch.long, device=text.tokens.device)
     return TextFeatures(text.tokens[t], text.mask[t], text.token_words[t], [text.words[i] for i in idx],
                         text.pooled[t])
 

@@ -31,10 +31,10 @@ def _word_tokens(token_words: torch.Tensor, mask: torch.Tensor) -> tuple[dict[in
     """Token positions of each word, and the positions of special (non-word) tokens."""
     words: dict[int, list[int]] = {}
     special = []
-    for k in range(token_words.shape[0]):
-        if not bool(mask[k]):
+    # as lists: on a GPU, reading tensors element by element would sync once per token
+    for k, (w, real) in enumerate(zip(token_words.tolist(), mask.tolist())):
+        if not real:
             continue
-        w = int(token_words[k])
         if w >= 0:
             words.setdefault(w, []).append(k)
         else:
@@ -99,4 +99,5 @@ def align_tokens(text, source_row: int, target_row: int, mode: str) -> TokenAlig
             # takes the mean map of the source word's tokens.
             for b in targets:
                 W[sources, b] = 1.0 / len(sources)
-    return TokenAlignment(W, inserted, list(src_words), list(tgt_words), word_map)
+    device = text.tokens.device       # built once where the attention maps it is applied to live
+    return TokenAlignment(W.to(device), inserted.to(device), list(src_words), list(tgt_words), word_map)

@@ -37,7 +37,8 @@ DEFAULT_INVERSION = "negative"
 def encode(pipe, real: RealMotion) -> torch.Tensor:
     """Raw features -> the VAE's mean latent, scaled as the denoiser sees it: (1, T/4, 7, D)."""
     with torch.no_grad():
-        mu, _ = pipe.vae.encode(torch.from_numpy(pipe.normalizer.normalize(real.features)).float()[None])
+        x = torch.from_numpy(pipe.normalizer.normalize(real.features)).float()[None]
+        mu, _ = pipe.vae.encode(x.to(pipe.device))
     return mu * pipe.latent_scale
 
 

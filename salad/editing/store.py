@@ -132,7 +132,7 @@ class AttentionStore:
         layers = sorted(self.captured[0])
         text_row = range(self.text.tokens.shape[0])[self.rows][row]
         words = self.text.words[text_row]
-        tw = self.text.token_words[text_row]                      # (L,) word index or -1
+        tw = self.text.token_words[text_row].cpu()                # (L,) word index or -1
         L = tw.shape[0]
         merge = torch.zeros(L, max(len(words), 1))
         for k in range(L):
@@ -142,7 +142,7 @@ class AttentionStore:
                         dtype=np.float32)
         for s, per_layer in enumerate(self.captured):
             for li, layer in enumerate(layers):
-                m = per_layer[layer][row].float()                 # (T', J, L)
+                m = per_layer[layer][row].float().cpu()           # (T', J, L)
                 w = m[..., :L] @ merge                            # (T', J, words)
                 data[s, li] = w.permute(2, 1, 0).numpy()[: len(words)]
         return AttentionMaps(words=list(words), data=data, frames=frames or self.frames, layers=layers)

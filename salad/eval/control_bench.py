@@ -24,7 +24,8 @@ windows and for the unconstrained generations put them in context (target: contr
 0.9 x unconstrained).
 
 AITS: wall time of one guided generation (batch 1: guided DDIM with CFG, refinement, VAE decode) averaged over the
-samples, on this machine's CPU threads; MoLA reports 1.04 s on an A100 GPU.
+samples, on the pipeline's device (this machine's CPU threads unless a GPU is used); MoLA reports 1.04 s on an
+A100 GPU.
 """
 from __future__ import annotations
 
@@ -248,7 +249,8 @@ def evaluate_control(pipe, dataset, evaluator, samples: int = 32, steps: int = 5
         "protocol": {"dataset": str(dataset.root), "samples": len(cases), "pool": pool, "steps": steps, "cfg": cfg,
                      "joints": [sk.JOINT_NAMES[j] for j in joints], "density": str(density), "seed": seed,
                      "max_frames": max_frames, "reference_motions": len(dataset.items),
-                     "torch_threads": torch.get_num_threads(), "thresholds_m": list(THRESHOLDS_M)},
+                     "torch_threads": torch.get_num_threads(), "device": str(pipe.device),
+                     "thresholds_m": list(THRESHOLDS_M)},
         "cases": [{"name": c.name, "caption": c.caption, "frames": c.frames,
                    "controlled_locations": int(c.signal.joint_mask().sum())} for c in cases],
         "paper": MOLA_TABLE2,
@@ -260,6 +262,11 @@ def evaluate_control(pipe, dataset, evaluator, samples: int = 32, steps: int = 5
 
 _CONTROL_COLS = ("Traj_err_50cm", "Loc_err_50cm", "Traj_err_20cm", "Loc_err_20cm", "Avg_err_m")
 _REAL_COLS = ("R_precision_top1", "R_precision_top2", "R_precision_top3", "FID", "MM_Dist", "Diversity", "Foot_skating")
+
+
+def _where(protocol: dict) -> str:
+    device = protocol.get("device", "cpu")       # results written before the device was recorded ran on the CPU
+    return f"{protocol['torch_threads']} CPU thread(s)" if device == "cpu" else f"the {device} GPU"
 
 
 def markdown_report(results: dict[str, Any]) -> str:
@@ -298,8 +305,8 @@ def markdown_report(results: dict[str, Any]) -> str:
                   f"pools of {p['pool']}" + (" (easier than the usual 32)" if p["pool"] < MAX_POOL else "") +
                   f"; FID against all {p['reference_motions']} real motions of the split; evaluator embeddings are "
                   "unit-norm, so FID, MM-Dist "
-                  f"and Diversity are on a smaller scale than in the papers. AITS on {p['torch_threads']} CPU "
-                  f"thread(s). Total time {results['time_s']:.0f} s."]
+                  f"and Diversity are on a smaller scale than in the papers. AITS on {_where(p)}. "
+                  f"Total time {results['time_s']:.0f} s."]
     return "\n".join(lines) + "\n"
 
 

@@ -128,7 +128,7 @@ def embed_motion_batches(encode, features: list[np.ndarray], batch_size: int) ->
     for s in range(0, len(order), batch_size):
         idx = order[s:s + batch_size]
         x, lengths = pad_batch([features[i] for i in idx])
-        emb = encode(x, lengths).float().numpy()
+        emb = encode(x, lengths).float().cpu().numpy()
         if out is None:
             out = np.empty((len(features), emb.shape[1]), dtype=np.float32)
         out[idx] = emb
@@ -177,8 +177,9 @@ class Evaluator:
 
     @torch.no_grad()
     def embed_text_features(self, tokens: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
+        """The evaluator stays on the CPU; the features may come from a text encoder on a GPU."""
         self.matcher.eval()
-        return self.matcher.encode_text(tokens, mask).float().numpy()
+        return self.matcher.encode_text(tokens.cpu(), mask.cpu()).float().numpy()
 
     @torch.no_grad()
     def embed_texts(self, captions: Sequence[str]) -> np.ndarray:

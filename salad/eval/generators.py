@@ -61,10 +61,10 @@ class VAEReconstruction:
         for ref, n in zip(references, lengths):
             f = np.asarray(ref[:n], dtype=np.float32)
             m = (n // 4) * 4
-            x = torch.from_numpy(self.pipe.normalizer.normalize(f[:m]))[None]
+            x = torch.from_numpy(self.pipe.normalizer.normalize(f[:m]))[None].to(self.pipe.device)
             mu, _ = self.pipe.vae.encode(x)
             rec, _ = self.pipe.vae.decode(mu)
-            r = self.pipe.normalizer.denormalize(rec[0].numpy())
+            r = self.pipe.normalizer.denormalize(rec[0].cpu().numpy())
             if m < n:
                 r = np.concatenate([r, f[m:]])
             j, jr = features_to_joints(f[:m]), features_to_joints(r[:m])

@@ -198,12 +198,13 @@ class TextEncoder(torch.nn.Module):
         tokens = torch.zeros(batch, length, self.dim, dtype=torch.float32, device=device)
         mask = torch.zeros(batch, length, dtype=torch.bool, device=device)
         token_words = torch.full((batch, length), -1, dtype=torch.long, device=device)
+        # cached entries stay where they were encoded; the encoder may have moved since
         for b, e in enumerate(entries):
             n = e.tokens.shape[0]
-            tokens[b, :n] = e.tokens
+            tokens[b, :n] = e.tokens.to(device)
             mask[b, :n] = True
-            token_words[b, :n] = e.token_words
-        pooled = (torch.stack([e.pooled for e in entries]) if entries
+            token_words[b, :n] = e.token_words.to(device)
+        pooled = (torch.stack([e.pooled.to(device) for e in entries]) if entries
                   else torch.zeros(0, self.dim, dtype=torch.float32, device=device))
         return TextFeatures(tokens, mask, token_words, [list(e.words) for e in entries], pooled)
 

@@ -126,7 +126,7 @@ def save_vocabulary(vocab: Vocabulary, encoder: TextEncoder, out: str | Path) ->
 
 
 def _encode(prompts: list[str], encoder: TextEncoder, chunk: int = 64) -> torch.Tensor:
-    rows = [encoder.encode(prompts[i:i + chunk]).pooled for i in range(0, len(prompts), chunk)]
+    rows = [encoder.encode(prompts[i:i + chunk]).pooled.cpu() for i in range(0, len(prompts), chunk)]
     return torch.nn.functional.normalize(torch.cat(rows).float(), dim=-1)
 
 
@@ -173,7 +173,8 @@ class PromptCheck:
 
     def nearest(self, prompt: str, k: int = 3) -> list[tuple[str, float]]:
         """The `k` trained actions nearest to `prompt`: (how to name it, cosine similarity), best first."""
-        q = torch.nn.functional.normalize(self.encoder.encode([prompt]).pooled.float(), dim=-1)[0]
+        # compared on the CPU, where the stored vocabulary features are
+        q = torch.nn.functional.normalize(self.encoder.encode([prompt]).pooled.float().cpu(), dim=-1)[0]
         sims = self.features @ q
         best: dict[str, float] = {}
         for (action, _), s in zip(self.vocab.examples, sims.tolist()):

@@ -297,7 +297,7 @@ def merge_joints(parts: list[torch.Tensor]) -> torch.Tensor:
     if len(parts) != sk.NUM_JOINTS:
         raise ValueError(f"expected {sk.NUM_JOINTS} joint feature tensors, got {len(parts)}")
     cat = torch.cat(parts, dim=-1)
-    order = torch.tensor([i for g in joint_feature_indices() for i in g])
+    order = torch.tensor([i for g in joint_feature_indices() for i in g], device=cat.device)
     out = torch.empty_like(cat)
     out[..., order] = cat
     return out
