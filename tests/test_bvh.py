@@ -532,10 +532,14 @@ def test_exported_file_reads_the_same_in_bvhio(tmp_path, walk, represented_walk,
 # Runs inside Blender: imports the BVH with Blender's own importer and writes the world position of
 # every bone's head (its joint) at the asked frames, turned back from Blender's Z-up world into the
 # file's Y-up axes, in metres. The importer keys file frame i at scene frame frame_start + i.
+# Debian's Blender 3.4 runs on Python 3.11, where its BVH importer's open(path, "rU") is an invalid mode; the
+# importer's own module gets an open() that drops the "U" (universal newlines are Python 3's default anyway).
 BLENDER_SCRIPT = """
-import json, sys
+import builtins, json, sys
 import bpy
 from bpy_extras.io_utils import axis_conversion
+import io_anim_bvh.import_bvh as importer
+importer.open = lambda file, mode="r", *a, **k: builtins.open(file, mode.replace("U", ""), *a, **k)
 bvh, scale, frames, out = sys.argv[sys.argv.index("--") + 1:]
 bpy.ops.import_anim.bvh(filepath=bvh, global_scale=float(scale), axis_forward="-Z", axis_up="Y",
                         rotate_mode="NATIVE", frame_start=1, use_fps_scale=False)

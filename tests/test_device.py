@@ -88,7 +88,9 @@ def test_cpu_asked_for_is_the_default_here(pipe, tiny_model):
         assert pipe.device == torch.device("cpu")                      # "auto" without a GPU
         a = pipe.generate(PROMPT, seconds=1.2, seed=5, steps=4)
         b = on_cpu.generate(PROMPT, seconds=1.2, seed=5, steps=4)
-        assert np.array_equal(a.joints, b.joints) and np.array_equal(a.features, b.features)
+        # same device and same noise; only the reduction order may differ (other tests change torch's thread count)
+        np.testing.assert_allclose(a.joints, b.joints, atol=1e-4)
+        np.testing.assert_allclose(a.features, b.features, atol=1e-3)
 
 
 @no_gpu
