@@ -27,8 +27,9 @@ endef
 system-deps:
 	$(call apt_install,$(APT_PACKAGES),)
 
+# A machine that cannot install Blender still runs the suite: the Blender test then skips and says why.
 test-deps:
-	$(call apt_install,$(TEST_APT_PACKAGES),--no-install-recommends)
+	-$(call apt_install,$(TEST_APT_PACKAGES),--no-install-recommends)
 
 $(STAMP): requirements.txt pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
