@@ -217,7 +217,7 @@ def test_tiny_models_overfit_a_tiny_batch():
         loss.backward()
         opt.step()
     # A tenth of the first loss is what one machine reaches; other CPUs' numerics ended just above it.
-    assert float(loss) < first / 4, (first, float(loss))
+    assert float(loss.detach()) < first / 4, (first, float(loss.detach()))
 
     den = tiny_denoiser()
     s = NoiseSchedule()
