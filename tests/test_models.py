@@ -229,7 +229,7 @@ def test_tiny_models_overfit_a_tiny_batch():
     losses = []
     for step in range(300):
         loss = torch.nn.functional.mse_loss(den(s.add_noise(z0, noise, t), t, text), target)
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         opt.zero_grad()
         loss.backward()
         opt.step()
