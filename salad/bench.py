@@ -5,7 +5,8 @@ and precision (fp32, bf16) it times text -> joints for a 6 s motion (120 frames,
 50 DDIM steps, classifier-free guidance) at batch 1 and 16, in a fresh subprocess so
 that peak memory is that configuration's own. It also measures this machine's matmul
 peak in the same run, the denoiser's achieved GFLOP/s, DPM-Solver++ against DDIM at
-matched accuracy, and a profile of where the time goes.
+matched accuracy, the consistency student's 1-4 step sampling beside a fixed matmul
+reference (50 fp32 1024x1024 matmuls), and a profile of where the time goes.
 """
 from __future__ import annotations
 
@@ -20,6 +21,8 @@ from pathlib import Path
 import torch
 
 SECONDS = 6.0   # 120 frames
+CONSISTENCY_STEPS = (1, 2, 4)
+CONSISTENCY_TARGET_MS = 60.0   # per 6 s motion, fp32, batch 1
 
 
 def matmul_peak(dtype: torch.dtype, n: int = 2048, repeats: int = 5) -> float:
@@ -59,14 +62,31 @@ def _load(model: str, bf16: bool):
     return load_pipeline(None if model == "embedded" else model, bf16=bf16, device="cpu")
 
 
-def _denoiser_flops(pipe, batch: int, seconds: float) -> float:
-    """FLOPs of one batched CFG forward of the denoiser (2 x batch rows)."""
+def matmul_reference_ms(n: int = 1024, count: int = 50, repeats: int = 3) -> float:
+    """Milliseconds for `count` fp32 n x n matmuls on this CPU: a yardstick measured in the same
+    run as the sampling times, so that they can be compared across machines."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    a @ b
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        for _ in range(count):
+            a @ b
+        best = min(best, time.perf_counter() - t)
+    return 1000 * best
+
+
+def _denoiser_flops(pipe, batch: int, seconds: float, sampler: str = "ddim") -> float:
+    """FLOPs of one sampling step's forward: the CFG batch (2 x batch rows), or batch rows for
+    the consistency student, whose guidance is an input."""
     from torch.utils.flop_counter import FlopCounterMode
-    text = pipe.encode_text([""] * batch + ["a person walks"] * batch)
-    x = torch.randn(2 * batch, pipe.frames_for(seconds) // 4, 7, pipe.denoiser.config.latent_dim)
-    t = torch.full((2 * batch,), 500)
+    text = pipe.sampler_text(["a person walks"] * batch, sampler)
+    rows = text.tokens.shape[0]
+    x = torch.randn(rows, pipe.frames_for(seconds) // 4, 7, pipe.denoiser.config.latent_dim)
+    t = torch.full((rows,), 500)
+    fn = pipe.student_fn(text, False, 7.5) if sampler == "consistency" else pipe.model_fn(text, auto=False)
     with FlopCounterMode(display=False) as fc, torch.no_grad():
-        pipe.model_fn(text, auto=False)(x, t)
+        fn(x, t)
     return float(fc.get_total_flops())
 
 
@@ -76,15 +96,17 @@ def run_one(model: str, bf16: bool, batch: int, sampler: str = "ddim", steps: in
     pipe = _load(model, bf16)
     if bf16 and not pipe.bf16:
         return {"skipped": "bf16 is not supported on this CPU"}
+    if sampler == "consistency" and pipe.student is None:
+        return {"skipped": "the model has no consistency student"}
     prompt = "a person walks forward and waves their right hand"
-    pipe.generate(prompt, seconds=seconds, steps=2, batch=batch)          # warm-up: caches, kernels
+    pipe.generate(prompt, seconds=seconds, steps=2, sampler=sampler, batch=batch)      # warm-up: caches, kernels
     times = []
     for r in range(repeats):
         t = time.perf_counter()
         pipe.generate(prompt, seconds=seconds, seed=r, steps=steps, sampler=sampler, batch=batch)
         times.append(time.perf_counter() - t)
     best = min(times)
-    flops = _denoiser_flops(pipe, batch, seconds) * steps
+    flops = _denoiser_flops(pipe, batch, seconds, sampler) * steps
     return {"model": model, "precision": "bf16" if bf16 else "fp32", "batch": batch, "sampler": sampler,
             "steps": steps, "seconds_per_call": best, "ms_per_motion": 1000 * best / batch,
             "motions_per_s": batch / best, "denoiser_gflops": flops / 1e9,
@@ -157,8 +179,12 @@ def bench(out: Path, models=("embedded", "paper"), batches=(1, 16), quick: bool 
                     r["share_of_matmul_peak"] = r["achieved_gflop_s"] / peak[r["precision"]]
                 runs.append(r)
     report = {"machine": {"cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads(),
-                          "matmul_peak_gflop_s": peak},
+                          "matmul_peak_gflop_s": peak, "matmul_1024_x50_ms": matmul_reference_ms()},
               "motion": {"seconds": seconds, "cfg": 7.5}, "runs": runs}
+    if "embedded" in models:
+        report["consistency"] = [_subprocess("run_one", model="embedded", bf16=False, batch=1, sampler="consistency",
+                                             steps=k, repeats=1 if quick else 5, seconds=seconds)
+                                 for k in CONSISTENCY_STEPS]
     if "embedded" in models:
         acc = _subprocess("solver_accuracy", model="embedded", bf16=False, seeds=2 if quick else 4)
         report["solver_accuracy"] = acc
@@ -184,7 +210,9 @@ def bench(out: Path, models=("embedded", "paper"), batches=(1, 16), quick: bool 
 def format_table(report: dict) -> str:
     peak = report["machine"]["matmul_peak_gflop_s"]
     bf16 = "not supported on this CPU" if peak["bf16"] is None else f"{peak['bf16']:.0f} GFLOP/s"
-    lines = [f"matmul peak: fp32 {peak['fp32']:.0f} GFLOP/s, bf16 {bf16} ({report['machine']['cores']} cores)", "",
+    ref = report["machine"].get("matmul_1024_x50_ms")
+    lines = [f"matmul peak: fp32 {peak['fp32']:.0f} GFLOP/s, bf16 {bf16} ({report['machine']['cores']} cores)"
+             + (f"; 50 fp32 1024x1024 matmuls: {ref:.0f} ms" if ref else ""), "",
              f"{'model':10s} {'prec':5s} {'batch':>5s} {'ms/motion':>10s} {'motions/s':>10s} {'GFLOP/s':>8s} "
              f"{'% peak':>7s} {'peak MB':>8s}"]
     for r in report["runs"]:
@@ -204,6 +232,17 @@ def format_table(report: dict) -> str:
             note = "" if fast.get("matched_ddim50") else " (the most accurate DPM setting; none matched DDIM-50)"
             lines.append(f"  embedded {fast['precision']} batch 1 with dpm-{fast['steps']}: "
                          f"{fast['ms_per_motion']:.0f} ms/motion{note}")
+    student = report.get("consistency") or []
+    if student:
+        lines += ["", f"consistency student (embedded, fp32, batch 1, {report['motion']['seconds']:g} s motion; "
+                      f"target <= {CONSISTENCY_TARGET_MS:g} ms):"]
+    for r in student:
+        if "ms_per_motion" not in r:
+            lines.append(f"  {r.get('error') or r.get('skipped')}")
+            break
+        met = "meets" if r["ms_per_motion"] <= CONSISTENCY_TARGET_MS else "misses"
+        vs = f", {r['ms_per_motion'] / ref:.2f}x the matmul reference" if ref else ""
+        lines.append(f"  {r['steps']} step(s): {r['ms_per_motion']:.0f} ms/motion{vs} ({met} the target)")
     prof = report.get("profile_embedded_fp32_batch1")
     if isinstance(prof, list):
         lines += ["", "where the time goes (embedded, fp32, batch 1, 50 steps):"]

@@ -15,10 +15,11 @@ import torch
 
 from .checkpoint import CheckpointError
 from .files import REPO_ROOT
-from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, default_repeats, guided_sample,
-                                 position_loss)
+from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, default_repeats,
+                                 guided_consistency_sample, guided_sample, position_loss)
+from .diffusion.consistency import consistency_sample
 from .diffusion.sampling import sample
-from .diffusion.schedule import SAMPLERS, DiffusionConfig, NoiseSchedule
+from .diffusion.schedule import CONSISTENCY_GRID, SAMPLERS, DiffusionConfig, NoiseSchedule
 from .editing.build import build_edit, step_follower
 from .editing.real import edit_real
 from .editing.spec import DEFAULT_SELF_INJECT, EditResult, EditSpec
@@ -39,13 +40,15 @@ from .motion.representation import FPS, MIN_AUTO_FRAMES, Normalizer, features_to
 EMBEDDED_MODEL = REPO_ROOT / "assets" / "model"
 MAX_PROMPT_CHARS = 300
 ACTIVATION_THRESHOLD = 0.5
+DEFAULT_STEPS = {"ddim": 50, "dpm": 50, "consistency": 4}
 
 
 
 class Pipeline:
     def __init__(self, vae: MotionVAE, normalizer: Normalizer, latent_scale: float, denoiser: Denoiser,
                  text_encoder: TextEncoder, schedule: NoiseSchedule, canvas_frames: int, bf16: bool = True,
-                 source: str = "", prompt_check: PromptCheck | None = None, device: str | torch.device = "auto"):
+                 source: str = "", prompt_check: PromptCheck | None = None, device: str | torch.device = "auto",
+                 student: Denoiser | None = None, student_info: dict | None = None):
         self.device = resolve_device(device)
         self.vae, self.normalizer, self.latent_scale = vae.eval().to(self.device), normalizer, latent_scale
         self.denoiser, self.schedule = denoiser.eval().to(self.device), schedule
@@ -54,6 +57,10 @@ class Pipeline:
         self.bf16 = bf16 and bf16_supported(self.device)
         self.source = source
         self.prompt_check = prompt_check
+        # the consistency-distilled student (sampler="consistency"), when the model ships one;
+        # student_info: the guidance range it learnt and the teacher it was distilled from
+        self.student = None if student is None else student.eval().to(self.device)
+        self.student_info = student_info or {}
 
     # ------------------------------------------------------------ validation
     @property
@@ -89,17 +96,34 @@ class Pipeline:
             raise ValueError(f"seconds must be between {lo:g} and {hi:g}, got {seconds!r}")
         return max(MIN_AUTO_FRAMES, int(round(s * FPS / 4)) * 4)
 
-    @staticmethod
-    def check_sampling(steps, cfg, sampler, batch=1) -> tuple[int, float, str, int]:
+    def check_sampling(self, steps, cfg, sampler, batch=1) -> tuple[int, float, str, int]:
+        """Checked (steps, cfg, sampler, batch); steps=None is the sampler's default
+        (DEFAULT_STEPS)."""
         if sampler not in SAMPLERS:
             raise ValueError(f"sampler must be one of {', '.join(SAMPLERS)}, got {sampler!r}")
-        if not isinstance(steps, (int, np.integer)) or not 1 <= steps <= 1000:
-            raise ValueError(f"steps must be an integer in 1..1000, got {steps!r}")
+        if steps is None:
+            steps = DEFAULT_STEPS[sampler]
+        top = CONSISTENCY_GRID if sampler == "consistency" else 1000
+        if not isinstance(steps, (int, np.integer)) or not 1 <= steps <= top:
+            raise ValueError(f"steps must be an integer in 1..{top} for the {sampler} sampler, got {steps!r}")
         if not isinstance(cfg, (int, float)) or not math.isfinite(cfg) or not 0 <= cfg <= 30:
             raise ValueError(f"cfg must be a number in 0..30, got {cfg!r}")
+        if sampler == "consistency":
+            if self.student is None:
+                raise ValueError("this model has no consistency student (a consistency/ checkpoint next to denoiser/):"
+                                 " distil one with `salad train consistency`, or use the ddim or dpm sampler")
+            lo, hi = self.guidance_range
+            if not lo <= cfg <= hi:
+                raise ValueError(f"the consistency student was distilled for cfg {lo:g}..{hi:g}, got {cfg!r}; "
+                                 "use the ddim or dpm sampler for other scales")
         if not isinstance(batch, (int, np.integer)) or not 1 <= batch <= 64:
             raise ValueError(f"batch must be an integer in 1..64, got {batch!r}")
         return int(steps), float(cfg), sampler, int(batch)
+
+    @property
+    def guidance_range(self) -> tuple[float, float]:
+        lo, hi = self.student_info.get("guidance", (0.0, 30.0))
+        return float(lo), float(hi)
 
     # ------------------------------------------------------------ building blocks
     def autocast(self):
@@ -127,6 +151,46 @@ class Pipeline:
                                      auto_length=flags).float()
         return fn
 
+    def network(self, sampler: str) -> Denoiser:
+        """The network a sampler runs: the distilled student for "consistency", else the denoiser."""
+        return self.student if sampler == "consistency" else self.denoiser
+
+    def sampler_text(self, prompts: list[str], sampler: str):
+        """The encoded rows a sampler's network sees: the teacher's CFG layout [""..., prompts...],
+        or the prompts alone for the student, whose guidance is a condition."""
+        return self.encode_text(list(prompts) if sampler == "consistency" else [""] * len(prompts) + list(prompts))
+
+    @staticmethod
+    def conditional_rows(batch: int, sampler: str) -> slice:
+        """Rows of the prompts themselves in sampler_text's layout."""
+        return slice(0, batch) if sampler == "consistency" else slice(batch, 2 * batch)
+
+    def student_fn(self, text, auto: bool, cfg: float, frame_mask: torch.Tensor | None = None):
+        """The student as the consistency loop sees it: one row per motion, the guidance scale as input."""
+        def fn(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            with self.autocast():
+                flags = torch.full((x.shape[0],), auto, device=x.device)
+                w = torch.full((x.shape[0],), float(cfg), device=x.device)
+                return self.student(x, t, text.tokens, text.mask, frame_mask, pooled_text=text.pooled,
+                                    auto_length=flags, guidance=w).float()
+        return fn
+
+    def denoise(self, text, noise: torch.Tensor, sampler: str, steps: int, cfg: float, auto: bool,
+                seed: int | list[int] = 0, frame_mask: torch.Tensor | None = None, shared_noise: bool = False,
+                on_step=None) -> torch.Tensor:
+        """Clean latents from `noise` with `text` in sampler_text's layout. The consistency sampler
+        re-noises between steps with draws seeded by `seed` (shared by all rows with shared_noise;
+        a list gives each row its own seed, as if it were sampled alone)."""
+        if sampler == "consistency":
+            if isinstance(seed, (list, tuple)):
+                g = [torch.Generator().manual_seed(int(s) + 1) for s in seed]
+            else:
+                g = torch.Generator().manual_seed(int(seed) + 1)
+            return consistency_sample(self.student_fn(text, auto, cfg, frame_mask), noise, self.schedule, steps,
+                                      generator=g, shared_noise=shared_noise, on_step=on_step)
+        return sample(self.model_fn(text, auto=auto, frame_mask=frame_mask), noise, self.schedule, sampler=sampler,
+                      steps=steps, cfg_scale=cfg, on_step=on_step)
+
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, frames: int | None, texts: list[str], seed: int,
                foot_lock: bool = True) -> list[Motion]:
@@ -150,21 +214,24 @@ class Pipeline:
         return out
 
     # ------------------------------------------------------------ generation
-    def generate(self, prompt: str, seconds: float | str | None = None, seed: int = 0, steps: int = 50,
+    def generate(self, prompt: str, seconds: float | str | None = None, seed: int = 0, steps: int | None = None,
                  cfg: float = 7.5, sampler: str = "ddim", batch: int = 1, return_attention: bool = False,
                  progress: Progress | None = None, foot_lock: bool = True):
         """Text -> Motion (or a list of `batch` motions). seconds=None lets the model choose the length;
-        foot_lock=False returns the decoder's joints without the foot clean-up."""
+        foot_lock=False returns the decoder's joints without the foot clean-up. sampler: "ddim" (the
+        paper's), "dpm" (DPM-Solver++) or "consistency" (the distilled student, 1-4 steps, one forward
+        per step); steps=None is the sampler's default (50, 50, 4)."""
         prompt = self.check_prompt(prompt)
         frames = self.frames_for(seconds)
         steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
         canvas = frames or self.canvas_frames
-        text = self.encode_text([""] * batch + [prompt] * batch)
-        store = AttentionStore(text, rows=slice(batch, 2 * batch), frames=canvas) if return_attention else None
+        text = self.sampler_text([prompt] * batch, sampler)
+        rows = self.conditional_rows(batch, sampler)
+        store = AttentionStore(text, rows=rows, frames=canvas) if return_attention else None
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
-        with self.denoiser.controlled(store):
-            z = sample(self.model_fn(text, auto=frames is None), self.noise(batch, canvas, seed), self.schedule,
-                       sampler=sampler, steps=steps, cfg_scale=cfg, on_step=on_step)
+        with self.network(sampler).controlled(store):
+            z = self.denoise(text, self.noise(batch, canvas, seed), sampler, steps, cfg, auto=frames is None,
+                             seed=seed, on_step=on_step)
         motions = self.decode(z, frames, [prompt] * batch, seed, foot_lock)
         if store is not None:
             for b, m in enumerate(motions):
@@ -172,7 +239,7 @@ class Pipeline:
         return motions[0] if batch == 1 else motions
 
     @torch.no_grad()
-    def generate_batch(self, prompts: list[str], frames: list[int], seed: int = 0, steps: int = 50,
+    def generate_batch(self, prompts: list[str], frames: list[int], seed: int = 0, steps: int | None = None,
                        cfg: float = 7.5, sampler: str = "ddim", foot_lock: bool = True) -> list[Motion]:
         """Several prompts with their own lengths (frames, multiples of 4) in one batched
         sampling run, padded and masked in time: the evaluation protocol's workhorse."""
@@ -184,19 +251,19 @@ class Pipeline:
             if n % 4 or not MIN_AUTO_FRAMES <= n <= self.canvas_frames:
                 raise ValueError(f"lengths must be multiples of 4 in {MIN_AUTO_FRAMES}..{self.canvas_frames}, got {n}")
         B, T = len(prompts), max(frames)
-        text = self.encode_text([""] * B + prompts)
+        text = self.sampler_text(prompts, sampler)
         mask = (torch.arange(T // 4)[None] < torch.tensor(frames)[:, None] // 4).to(self.device)
         noise = self.noise(B, T, seed) * mask[:, :, None, None]
-        z = sample(self.model_fn(text, auto=False, frame_mask=mask), noise, self.schedule, sampler=sampler,
-                   steps=steps, cfg_scale=cfg)
+        z = self.denoise(text, noise, sampler, steps, cfg, auto=False, seed=seed, frame_mask=mask)
         out = []
         for b, n in enumerate(frames):
             out += self.decode(z[b:b + 1, : n // 4], n, [prompts[b]], seed, foot_lock)
         return out
 
     # ------------------------------------------------------------ guided control
-    def control(self, prompt: str, targets=None, mask=None, seed: int = 0, strength: float = 1.0, steps: int = 50,
-                cfg: float = 7.5, repeats=None, signal=None, progress: Progress | None = None,
+    def control(self, prompt: str, targets=None, mask=None, seed: int = 0, strength: float = 1.0,
+                steps: int | None = None, cfg: float = 7.5, sampler: str = "ddim", repeats=None, signal=None,
+                progress: Progress | None = None,
                 edit: EditSpec | dict | None = None,
                 gradient_steps: int | None = None, refine_steps: int | None = None,
                 foot_lock: bool = True) -> Motion | EditResult:
@@ -207,7 +274,9 @@ class Pipeline:
         multiple of 4). strength scales the guidance step; repeats is the number of
         time-travel repeats per step (an int, or a function of (step, steps));
         gradient_steps the guidance steps per network evaluation and refine_steps those
-        on the final latent (defaults in salad.diffusion.guidance).
+        on the final latent (defaults in salad.diffusion.guidance). sampler "ddim" (steps default 50)
+        or "consistency" (the distilled student, steps default 4, no time travel: `repeats` is
+        not used).
 
         edit runs an attention edit during guided sampling: an EditSpec, such as
         EditSpec(mode="mirror", mirror="upper") or EditSpec(target="a person runs forward"), or a
@@ -222,13 +291,18 @@ class Pipeline:
             raise ValueError(f"control signals must span {MIN_AUTO_FRAMES}..{self.canvas_frames} frames, got {sig.frames}")
         if not isinstance(strength, (int, float)) or not math.isfinite(strength) or not 0 <= strength <= 100:
             raise ValueError(f"strength must be a number in 0..100, got {strength!r}")
-        steps, cfg, _, _ = self.check_sampling(steps, cfg, "ddim")
+        if sampler not in ("ddim", "consistency"):
+            raise ValueError(f"guided control samples with ddim or consistency, got {sampler!r}")
+        if sampler == "consistency" and repeats is not None:
+            raise ValueError("time-travel repeats apply to ddim; the consistency sampler makes one clean estimate "
+                             "per step")
+        steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
         if not sig.mask[:frames].any():
             raise ValueError(f"the control signal constrains nothing in its first {frames} frames")
         if edit is None:
-            text, plan, prompts = self.encode_text(["", prompt]), None, [prompt]
+            text, plan, prompts = self.sampler_text([prompt], sampler), None, [prompt]
         else:
-            text, plan, prompts = self._control_edit(prompt, edit, steps, frames)
+            text, plan, prompts = self._control_edit(prompt, edit, steps, frames, sampler)
 
         def joints_of(z0: torch.Tensor) -> torch.Tensor:
             feats, _ = self.vae.decode(z0 / self.latent_scale)
@@ -239,13 +313,21 @@ class Pipeline:
         g = torch.Generator().manual_seed(int(seed) + 1)
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
         noise = self.noise(1, frames, seed).repeat(len(prompts), 1, 1, 1)     # one z_T for both edit branches
-        with self.denoiser.controlled(None if plan is None else plan.controller):
-            z = guided_sample(self.model_fn(text, auto=False), noise, self.schedule, loss, steps=steps, cfg_scale=cfg,
-                              strength=strength, repeats=default_repeats if repeats is None else repeats,
-                              gradient_steps=DEFAULT_GRADIENT_STEPS if gradient_steps is None else gradient_steps,
-                              refine_steps=DEFAULT_REFINE_STEPS if refine_steps is None else refine_steps,
-                              generator=g, shared_noise=plan is not None,
-                              before_model=None if plan is None else step_follower(plan.controller), on_step=on_step)
+        gradient_steps = DEFAULT_GRADIENT_STEPS if gradient_steps is None else gradient_steps
+        refine_steps = DEFAULT_REFINE_STEPS if refine_steps is None else refine_steps
+        with self.network(sampler).controlled(None if plan is None else plan.controller):
+            if sampler == "consistency":
+                z = guided_consistency_sample(self.student_fn(text, False, cfg), noise, self.schedule, loss, steps,
+                                              strength, gradient_steps, refine_steps, generator=g,
+                                              shared_noise=plan is not None, on_step=on_step)
+            else:
+                z = guided_sample(self.model_fn(text, auto=False), noise, self.schedule, loss, steps=steps,
+                                  cfg_scale=cfg, strength=strength,
+                                  repeats=default_repeats if repeats is None else repeats,
+                                  gradient_steps=gradient_steps, refine_steps=refine_steps, generator=g,
+                                  shared_noise=plan is not None,
+                                  before_model=None if plan is None else step_follower(plan.controller),
+                                  on_step=on_step)
         motions = self.decode(z, frames, prompts, seed, foot_lock)
         if not all(np.isfinite(m.joints).all() for m in motions):
             raise ValueError(f"guided sampling diverged (strength {strength}, {steps} steps): "
@@ -258,15 +340,16 @@ class Pipeline:
             return motions[0]
         source, edited = motions
         source.attention, edited.attention = plan.store.maps(0, source.frames), plan.store.maps(1, edited.frames)
-        params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler="ddim", strength=strength)
+        params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler=sampler, strength=strength)
         return EditResult(source, edited, source.attention, edited.attention, params)
 
-    def _control_edit(self, prompt: str, edit: EditSpec | dict, steps: int, frames: int):
+    def _control_edit(self, prompt: str, edit: EditSpec | dict, steps: int, frames: int, sampler: str):
         """Encoded text, edit plan and the two branch prompts for Pipeline.control(edit=...)."""
         spec = EditSpec.of(edit)
         prompt, target = self.check_edit(prompt, spec)
-        text = self.encode_text(["", "", prompt, target])
-        return text, build_edit(text, steps, frames, spec, prompt, target), [prompt, target]
+        text = self.sampler_text([prompt, target], sampler)
+        plan = build_edit(text, steps, frames, spec, prompt, target, cfg_layout=sampler != "consistency")
+        return text, plan, [prompt, target]
 
     # ------------------------------------------------------------ editing
     def check_edit(self, source_prompt: str, spec: EditSpec) -> tuple[str, str]:
@@ -275,7 +358,7 @@ class Pipeline:
         return source_prompt, self.check_prompt(spec.target_prompt(source_prompt))
 
     def edit(self, source_prompt: str, target_prompt: str | None = None, mode: str = "swap", seed: int = 0,
-             seconds: float | str | None = None, steps: int = 50, cfg: float = 7.5, sampler: str = "ddim",
+             seconds: float | str | None = None, steps: int | None = None, cfg: float = 7.5, sampler: str = "ddim",
              tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
              self_inject: float = DEFAULT_SELF_INJECT, progress: Progress | None = None, foot_lock: bool = True,
              spec: EditSpec | None = None) -> EditResult:
@@ -297,15 +380,16 @@ class Pipeline:
         steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
         canvas = frames or self.canvas_frames
 
-        text = self.encode_text(["", "", source_prompt, target_prompt])
-        plan = build_edit(text, steps, canvas, spec, source_prompt, target_prompt)
+        text = self.sampler_text([source_prompt, target_prompt], sampler)
+        plan = build_edit(text, steps, canvas, spec, source_prompt, target_prompt,
+                          cfg_layout=sampler != "consistency")
         edit, store = plan.controller, plan.store
 
         noise = self.noise(1, canvas, seed).repeat(2, 1, 1, 1)        # the same z_T for both branches
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
-        with self.denoiser.controlled(edit):
-            z = sample(self.model_fn(text, auto=frames is None), noise, self.schedule, sampler=sampler,
-                       steps=steps, cfg_scale=cfg, on_step=on_step)
+        with self.network(sampler).controlled(edit):
+            z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, shared_noise=True,
+                             on_step=on_step)
         source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock)
         source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
         params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler=sampler)
@@ -354,5 +438,26 @@ def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text
         raise CheckpointError(f"{root}: the denoiser expects {denoiser.config.text_dim}-d text features but the "
                               f"{encoder.name} encoder gives {encoder.dim}")
     schedule = NoiseSchedule(from_dict(DiffusionConfig, cfg["diffusion"]))
+    student, info = load_student(root, cfg, vae_latent_checksums(root / "vae"))
     return Pipeline(vae, norm, scale, denoiser, encoder, schedule, int(cfg["canvas_frames"]), bf16=bf16,
-                    source=str(root), prompt_check=PromptCheck.load(root, encoder), device=device)
+                    source=str(root), prompt_check=PromptCheck.load(root, encoder), device=device,
+                    student=student, student_info=info)
+
+
+def load_student(root: Path, teacher_config: dict, vae_checksums: set[str]) -> tuple[Denoiser | None, dict]:
+    """The consistency student in root/consistency (None when there is none), checked against the
+    model it must work with, and what it was distilled from (guidance range, teacher)."""
+    path = root / "consistency"
+    if not path.is_dir():
+        return None, {}
+    student, doc = load_denoiser(path)
+    cfg, meta = doc["config"], doc.get("meta", {})
+    info = meta.get("consistency")
+    if not student.config.guidance_embedding or not isinstance(info, dict):
+        raise CheckpointError(f"{path}: not a consistency-distilled student (train one with `salad train consistency`)")
+    if cfg.get("vae_checksum") and cfg["vae_checksum"] not in vae_checksums:
+        raise CheckpointError(f"{path}: the student was distilled on a different VAE than {root / 'vae'}")
+    for key in ("text_encoder", "diffusion", "canvas_frames"):
+        if cfg.get(key) != teacher_config.get(key):
+            raise CheckpointError(f"{path}: the student's {key} differs from the denoiser's; redistil it")
+    return student, info

@@ -1,4 +1,5 @@
 import os
+import shutil
 import socket
 from contextlib import contextmanager
 from pathlib import Path
@@ -149,6 +150,45 @@ def tiny_model(tiny_dataset, tmp_path_factory) -> Path:
     model.mkdir()
     (model / "vae").symlink_to(root / "vae-run" / "model")
     (model / "denoiser").symlink_to(root / "den-run" / "model")
+    return model
+
+
+def consistency_toml(path, data, teacher, steps):
+    """A consistency-distillation config for the tiny model."""
+    path.write_text(f"""teacher = "{teacher}"
+guidance_min = 2.0
+guidance_max = 8.0
+[data]
+root = "{data}"
+max_frames = 40
+balance = 1.0
+[optim]
+lr = 1e-3
+warmup_steps = 1
+batch_size = 4
+max_steps = {steps}
+[run]
+bf16 = false
+checkpoint_every = 2
+log_every = 1
+""")
+    return path
+
+
+@pytest.fixture(scope="session")
+def tiny_student(tiny_model, tiny_dataset, tmp_path_factory):
+    """The tiny model with a student distilled for a few steps through the CLI, in a copy of the
+    model directory (the shared tiny model stays without one)."""
+    from salad.cli import main
+
+    root = tmp_path_factory.mktemp("student")
+    cfg = consistency_toml(root / "c.toml", tiny_dataset, tiny_model, steps=3)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(root / "run")]) == 0
+    model = root / "model"
+    model.mkdir()
+    for part in ("vae", "denoiser"):
+        (model / part).symlink_to((tiny_model / part).resolve())
+    shutil.copytree(root / "run" / "model", model / "consistency")
     return model
 
 

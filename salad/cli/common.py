@@ -1,4 +1,5 @@
-"""What several commands share: progress bars, prompt warnings, --bvh-units and WORD=SCALE lists."""
+"""What several commands share: progress bars, prompt warnings, sampling options, --bvh-units and WORD=SCALE
+lists."""
 from __future__ import annotations
 
 import argparse
@@ -53,6 +54,22 @@ def device_of(a):
     """The command's --device, checked before anything slow: a GPU that is not there fails at once."""
     from ..precision import resolve_device
     return resolve_device(a.device)
+
+
+# Spelled out to keep the CLI free of torch; a test checks them against salad.diffusion.schedule.SAMPLERS.
+SAMPLER_CHOICES = ("ddim", "dpm", "consistency")
+SAMPLER_HELP = {"ddim": "DDIM, the paper's sampler", "dpm": "DPM-Solver++",
+                "consistency": "the consistency-distilled student: 1-4 steps, one forward each"}
+
+
+def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SAMPLER_CHOICES) -> None:
+    """--steps, --cfg and --sampler, for every command that samples."""
+    parser.add_argument("--steps", type=int, default=None,
+                        help="denoising steps (default: 50 for ddim and dpm, 4 for consistency)")
+    parser.add_argument("--cfg", type=float, default=7.5,
+                        help="classifier-free guidance scale (the consistency student takes the range it learnt)")
+    parser.add_argument("--sampler", choices=samplers, default="ddim",
+                        help="; ".join(f"{k}: {SAMPLER_HELP[k]}" for k in samplers))
 
 
 def add_bvh_units(parser: argparse.ArgumentParser) -> None:

@@ -10,7 +10,7 @@ from ..motion.control import (PATH_PRESETS, ControlSignal, control_errors, crop_
                              read_targets)
 from ..motion.motion import check_output_paths
 from ..motion.representation import FPS
-from .common import add_bvh_units, add_device, device_of, print_warnings, progress_bar
+from .common import add_bvh_units, add_device, add_sampling, device_of, print_warnings, progress_bar
 
 DEFAULT_PATH_SECONDS = 5.0
 SOURCES = ("path", "path_preset", "mola", "targets", "keyframes", "lower_body_from")
@@ -38,8 +38,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     c.add_argument("--speed", type=float, default=1.0, help="walking speed along --path-preset, m/s")
     c.add_argument("--height", type=float, default=None, help="also hold the pelvis at this height along a path (m)")
     c.add_argument("--strength", type=float, default=1.0, help="guidance strength (0 = none)")
-    c.add_argument("--steps", type=int, default=50)
-    c.add_argument("--cfg", type=float, default=7.5)
+    add_sampling(c, ("ddim", "consistency"))
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--repeats", type=int, default=None, help="time-travel repeats per step (default: 1-3 by phase)")
     c.add_argument("--gradient-steps", type=int, default=None, help="guidance steps per network evaluation")
@@ -113,6 +112,7 @@ def cmd_control(a) -> int:
                          f"most {pipe.canvas_frames} ({pipe.max_seconds:g} s): pass a shorter --seconds")
     bar, update = progress_bar("guided sampling")
     res = pipe.control(a.prompt, signal=sig, seed=a.seed, strength=a.strength, steps=a.steps, cfg=a.cfg,
+                       sampler=a.sampler,
                        repeats=a.repeats, gradient_steps=a.gradient_steps, refine_steps=a.refine_steps,
                        progress=update, foot_lock=not a.no_foot_lock,
                        edit=None if a.mirror is None else EditSpec(mode="mirror", mirror=a.mirror))

@@ -4,9 +4,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..editing.spec import DEFAULT_SELF_INJECT, EDIT_MODES, MIRROR_PARTS, EditSpec
-from ..editing.real import DEFAULT_INVERSION, edit_inverted, invert_real
-from ..eval.edit_metrics import mpjpe
-from .common import add_bvh_units, add_device, device_of, parse_reweight, print_warnings, progress_bar
+from ..editing.real import (DEFAULT_INVERSION, edit_encoded_consistency, edit_inverted, encode, invert_real,
+                            measure_reconstruction, read_real)
+from .common import (add_bvh_units, add_device, add_sampling, device_of, parse_reweight, print_warnings,
+                     progress_bar)
 
 
 def edit_spec(a) -> EditSpec:
@@ -49,9 +50,7 @@ def add_edit(sub) -> None:
     e.add_argument("--self-inject", type=float, default=DEFAULT_SELF_INJECT, help="share of steps with source self-attention")
     e.add_argument("--seconds", default=None)
     e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--steps", type=int, default=50)
-    e.add_argument("--cfg", type=float, default=7.5)
-    e.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
+    add_sampling(e)
     e.add_argument("--model", default=None)
     e.add_argument("--fp32", action="store_true")
     e.add_argument("--no-foot-lock", action="store_true", help="leave out the foot clean-up (planted feet pinned, legs re-solved by IK)")
@@ -79,8 +78,8 @@ def add_edit_real(sub) -> None:
     p.add_argument("--reweight", action="append", metavar="WORD=SCALE", help="scale a word's attention (-3..3)")
     p.add_argument("--mirror", choices=MIRROR_PARTS, default=None)
     p.add_argument("--self-inject", type=float, default=DEFAULT_SELF_INJECT, help="share of steps with source self-attention")
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--cfg", type=float, default=7.5)
+    add_sampling(p, ("ddim", "consistency"))
+    p.add_argument("--seed", type=int, default=0, help="the consistency sampler's noise seed (ddim inverts instead)")
     p.add_argument("--trim", action="store_true", help="keep the start of motions longer than the model's canvas")
     p.add_argument("--skeleton", default=None,
                    help="skeleton.json with the training bone lengths (default: found next to the model or its data)")
@@ -103,22 +102,31 @@ def cmd_edit_real(a) -> int:
         raise ValueError(f"{a.side_by_side}: unsupported output type for --side-by-side; use .mp4")
     pipe = load_pipeline(a.model, device=device)
     pipe.check_edit(a.source, spec)
-    steps, cfg, _, _ = pipe.check_sampling(a.steps, a.cfg, "ddim")
+    steps, cfg, _, _ = pipe.check_sampling(a.steps, a.cfg, a.sampler)
     from ..diffusion.inversion import METHODS
     if a.inversion not in METHODS:
         raise ValueError(f"--inversion must be one of {', '.join(METHODS)}, got {a.inversion!r}")
-    bar, update = progress_bar("inverting")
-    real, inv = invert_real(pipe, a.input, a.source, method=a.inversion, steps=steps, cfg=cfg, fp32=not a.bf16,
-                            bone_lengths=a.skeleton, trim=a.trim, progress=update)
+    if a.sampler == "consistency":
+        real = read_real(pipe, a.input, a.skeleton, trim=a.trim)
+        bar, update = progress_bar("editing")
+        res = edit_encoded_consistency(pipe, encode(pipe, real), spec, a.source, steps, cfg, a.seed, update,
+                                       not a.no_foot_lock)
+        timing = f"student edit {res.params['edit_seconds']:.1f} s"
+    else:
+        bar, update = progress_bar("inverting")
+        real, inv = invert_real(pipe, a.input, a.source, method=a.inversion, steps=steps, cfg=cfg, fp32=not a.bf16,
+                                bone_lengths=a.skeleton, trim=a.trim, progress=update)
+        bar.close()
+        bar, update = progress_bar("editing")
+        res = edit_inverted(pipe, inv, correct=not a.no_correct, progress=update, foot_lock=not a.no_foot_lock,
+                            spec=spec)
+        timing = f"inversion {res.params['inversion_seconds']:.1f} s, edit {res.params['edit_seconds']:.1f} s"
     bar.close()
-    bar, update = progress_bar("editing")
-    res = edit_inverted(pipe, inv, correct=not a.no_correct, progress=update, foot_lock=not a.no_foot_lock, spec=spec)
-    bar.close()
+    measure_reconstruction(res, real)
     print_warnings(res.edited)
-    err = mpjpe(res.source.joints, real.joints)
     notes = [f"{k}={v}" for k, v in real.info.items() if k in ("retargeted", "dropped_frames", "trimmed_from_frames")]
-    print(f"{real.source}: {real.frames} frames; reconstruction MPJPE {100 * err:.2f} cm; inversion "
-          f"{res.params['inversion_seconds']:.1f} s, edit {res.params['edit_seconds']:.1f} s ({', '.join(notes)})")
+    print(f"{real.source}: {real.frames} frames; reconstruction MPJPE {100 * res.source.info['mpjpe_m']:.2f} cm; "
+          f"{timing} ({', '.join(notes)})")
     for path in a.output:
         res.edited.save(path, bvh_units=a.bvh_units)
         print(f"wrote {path}")

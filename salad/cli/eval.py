@@ -18,7 +18,7 @@ from ..eval.fidelity import evaluate_fidelity, fidelity_classes, report_markdown
 from ..eval.length_dist import DEFAULT_BIN_FRAMES, MIN_FRAMES, evaluate_lengths, write_length_report
 from ..eval.real_edit_bench import SDEDIT_STRENGTHS, run_real_edit_bench
 from ..files import atomic_write_text
-from .common import add_device, device_of, progress_bar
+from .common import add_device, add_sampling, device_of, progress_bar
 
 
 def cmd_eval(a) -> int:
@@ -60,9 +60,7 @@ def add_eval(sub) -> None:
     ev.add_argument("--real-only", action="store_true", help="score only the real motions (the reference row)")
     ev.add_argument("--split", default="test")
     ev.add_argument("--repeats", type=int, default=20)
-    ev.add_argument("--steps", type=int, default=50)
-    ev.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
-    ev.add_argument("--cfg", type=float, default=7.5)
+    add_sampling(ev)
     ev.add_argument("--mm-prompts", type=int, default=32)
     ev.add_argument("--mm-repeats", type=int, default=10)
     ev.add_argument("--seed", type=int, default=0)
@@ -102,8 +100,7 @@ def add_eval_control(sub) -> argparse.ArgumentParser:
     p.add_argument("--gradient-steps", default=None, help="guidance steps per network evaluation")
     p.add_argument("--refine-steps", default=None, help="guidance steps on the final latent")
     p.add_argument("--repeats", default=None, help="time-travel repeats per step (default: 1-3 by phase)")
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--cfg", type=float, default=7.5)
+    add_sampling(p, ("ddim", "consistency"))
     p.add_argument("--max-frames", type=int, default=196)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
@@ -133,7 +130,8 @@ def cmd_eval_control(a) -> int:
     ev = load_evaluator(a.evaluator)
     ds = MotionDataset(a.data, a.split, max_frames=10 ** 9)
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device)
-    res = evaluate_control(pipe, ds, ev, samples=a.samples, steps=a.steps, cfg=a.cfg, settings=settings,
+    res = evaluate_control(pipe, ds, ev, samples=a.samples, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
+                           settings=settings,
                            joints=joints, density=a.density, seed=a.seed, max_frames=a.max_frames,
                            progress=lambda msg: print(msg, flush=True))
     res["protocol"].update(model=str(pipe.source), split=a.split, evaluator=str(a.evaluator))
@@ -153,9 +151,7 @@ def add_eval_edit(sub) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="directory for results.json and report.md")
     p.add_argument("--seeds", type=int, default=5, help="seeds per case")
     p.add_argument("--seed", type=int, default=0, help="first seed")
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--cfg", type=float, default=7.5)
-    p.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
+    add_sampling(p)
     p.add_argument("--modes", default=",".join(MODES), help=f"comma list of {', '.join(MODES)}")
     p.add_argument("--scales", default=",".join(f"{s:g}" for s in DEFAULT_SCALES),
                    help="re-weighting scales, comma list in [-3, 3]")
@@ -206,9 +202,7 @@ def add_eval_fidelity(sub) -> None:
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--classes", default=None, help="comma list of classes (default: all), e.g. walk,kick")
     p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--cfg", type=float, default=7.5)
-    p.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
+    add_sampling(p)
     p.add_argument("--split", default="test")
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--fp32", action="store_true", help="disable bf16 autocast")
@@ -253,9 +247,7 @@ def add_eval_length(sub) -> None:
     p.add_argument("--split", default="test")
     p.add_argument("--samples", type=int, default=256, help="test captions to generate for")
     p.add_argument("--batch", type=int, default=16, help="captions per sampling run")
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--cfg", type=float, default=7.5)
-    p.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
+    add_sampling(p)
     p.add_argument("--bin-frames", type=int, default=DEFAULT_BIN_FRAMES, help="histogram bin width for the JSD")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0)

@@ -1,7 +1,7 @@
 """`salad generate`: text -> motion files."""
 from __future__ import annotations
 
-from .common import add_bvh_units, add_device, device_of, print_warnings, progress_bar
+from .common import add_bvh_units, add_device, add_sampling, device_of, print_warnings, progress_bar
 
 
 def cmd_generate(a) -> int:
@@ -30,9 +30,7 @@ def add_parser(sub) -> None:
                    help="output file; repeat for several formats (e.g. -o walk.mp4 -o walk.bvh)")
     g.add_argument("--seconds", default=None, help="length in seconds, or 'auto' (default) to let the model decide")
     g.add_argument("--seed", type=int, default=0)
-    g.add_argument("--steps", type=int, default=50)
-    g.add_argument("--cfg", type=float, default=7.5, help="classifier-free guidance scale")
-    g.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
+    add_sampling(g)
     g.add_argument("--batch", type=int, default=1, help="motions to generate (files get a _k suffix)")
     g.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     g.add_argument("--fp32", action="store_true", help="disable bf16 autocast")

@@ -1,15 +1,17 @@
-"""`salad train`: the VAE, the denoiser, the evaluator or the classifier."""
+"""`salad train`: the VAE, the denoiser, its consistency-distilled student, the evaluator or the classifier."""
 from __future__ import annotations
 
 
 def cmd_train(a) -> int:
     from ..config import apply_overrides, load_toml
-    from ..training.configs import DenoiserTrainConfig, VAETrainConfig
+    from ..training.configs import ConsistencyTrainConfig, DenoiserTrainConfig, VAETrainConfig
     from ..training.loop import Trainer
     if a.continue_from and a.what not in ("vae", "denoiser"):
         raise ValueError(f"--continue-from applies to the vae and the denoiser, not to {a.what}")
     if a.init_from and a.what not in ("vae", "vae-san", "denoiser"):
         raise ValueError(f"--init-from applies to the vae, vae-san and the denoiser, not to {a.what}")
+    if a.teacher and a.what != "consistency":
+        raise ValueError(f"--teacher applies to consistency distillation, not to {a.what}")
     if a.what == "vae":
         from ..training.vae_task import VAETask
         cfg = load_toml(VAETrainConfig, a.config)
@@ -20,6 +22,13 @@ def cmd_train(a) -> int:
         cfg = load_toml(DenoiserTrainConfig, a.config)
         apply_overrides(cfg, a)
         task, ema = DenoiserTask(cfg), cfg.ema_decay
+    elif a.what == "consistency":
+        from ..training.consistency_task import ConsistencyTask
+        cfg = load_toml(ConsistencyTrainConfig, a.config)
+        apply_overrides(cfg, a)
+        if a.teacher:
+            cfg.teacher = a.teacher
+        task, ema = ConsistencyTask(cfg), None      # the task keeps its own EMA: the target network
     elif a.what == "vae-san":
         from ..training.vae_adv_task import train_vae_san
         return train_vae_san(a)
@@ -38,10 +47,11 @@ def cmd_train(a) -> int:
 
 
 def add_parser(sub) -> None:
-    t = sub.add_parser("train", help="train the VAE, the denoiser, the evaluator or the classifier",
+    t = sub.add_parser("train", help="train the VAE, the denoiser, its consistency student, the evaluator or the "
+                                     "classifier",
                        epilog="--init-from and --continue-from are ignored when the run's out_dir holds a saved "
                               "state: the run resumes from it.")
-    t.add_argument("what", choices=("vae", "vae-san", "denoiser", "evaluator", "classifier"))
+    t.add_argument("what", choices=("vae", "vae-san", "denoiser", "consistency", "evaluator", "classifier"))
     t.add_argument("--config", required=True, help="TOML config file")
     t.add_argument("--out-dir", help="override run.out_dir")
     t.add_argument("--data", help="override data.root")
@@ -50,6 +60,8 @@ def add_parser(sub) -> None:
     t.add_argument("--device", help="override run.device: auto (default: a CUDA GPU when torch sees one, else the "
                                     "CPU), cpu, cuda or cuda:N; under torchrun each process takes its LOCAL_RANK's GPU")
     t.add_argument("--vae", help="denoiser: override vae (the VAE whose latents it learns), e.g. assets/model/vae")
+    t.add_argument("--teacher", metavar="MODEL_DIR",
+                   help="consistency: override teacher, the model directory (vae/ + denoiser/) to distil")
     start = t.add_mutually_exclusive_group()
     start.add_argument("--init-from", metavar="MODEL_DIR",
                        help="fine-tune: start a new run (step 0) from an exported model's weights")

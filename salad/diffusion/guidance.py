@@ -30,6 +30,7 @@ from typing import Callable
 
 import torch
 
+from .consistency import consistency_sample
 from .sampling import ModelFn, cfg_combine
 from .schedule import NoiseSchedule
 
@@ -181,6 +182,31 @@ def guided_sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, 
         x = x_prev.detach()
         if on_step is not None:
             on_step(i + 1, len(ts), x)
+    if strength > 0 and refine_steps:
+        x = refine(loss_fn, x, refine_steps)
+    return x
+
+
+def guided_consistency_sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, loss_fn: Callable,
+                              steps: int = 4, strength: float = 1.0, gradient_steps: int = DEFAULT_GRADIENT_STEPS,
+                              refine_steps: int = DEFAULT_REFINE_STEPS, generator: torch.Generator | None = None,
+                              shared_noise: bool = False,
+                              on_step: Callable[[int, int, torch.Tensor], None] | None = None) -> torch.Tensor:
+    """The consistency student's few-step sampling with the same guidance: every step's clean
+    estimate takes `gradient_steps` backtracking steps (MoLA's step-size schedule at that step's
+    timestep) before it is re-noised, then the final latent is refined as in guided_sample.
+    `model` gets one row per motion (guidance is the student's input). There is no time travel:
+    a step is one clean estimate already."""
+    for name, v in (("gradient_steps", gradient_steps), ("refine_steps", refine_steps)):
+        if not isinstance(v, int) or v < 0:
+            raise ValueError(f"{name} must be a non-negative integer, got {v!r}")
+
+    def on_clean(t: int, z0: torch.Tensor) -> torch.Tensor:
+        rho = step_size(t, strength, schedule.config.train_steps)
+        return descend(loss_fn, z0, rho, gradient_steps) if rho > 0 and gradient_steps else z0
+
+    x = consistency_sample(model, noise, schedule, steps, generator=generator, shared_noise=shared_noise,
+                           on_clean=on_clean, on_step=on_step)
     if strength > 0 and refine_steps:
         x = refine(loss_fn, x, refine_steps)
     return x

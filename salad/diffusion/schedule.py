@@ -2,16 +2,20 @@
 
 The model predicts v (Salimans & Ho): v = sqrt(a) * eps - sqrt(1 - a) * x0, with a the
 cumulative alpha at t. Samplers are diffusers' DDIM (the paper's) and DPM-Solver++
-(a multistep solver that needs far fewer steps).
+(a multistep solver that needs far fewer steps); "consistency" is diffusers' LCM schedule for a
+distilled student (salad/diffusion/consistency.py).
 """
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
 import torch
-from diffusers import DDIMScheduler, DDPMScheduler, DPMSolverMultistepScheduler
+from diffusers import DDIMScheduler, DDPMScheduler, DPMSolverMultistepScheduler, LCMScheduler
 
-SAMPLERS = ("ddim", "dpm")
+SAMPLERS = ("ddim", "dpm", "consistency")
+TEACHER_SAMPLERS = ("ddim", "dpm")
+# The student is distilled along the teacher's 50-step DDIM grid; it samples on that grid.
+CONSISTENCY_GRID = 50
 
 
 @dataclass
@@ -92,7 +96,12 @@ class NoiseSchedule:
         if not 1 <= int(steps) <= self.config.train_steps:
             raise ValueError(f"steps must be in 1..{self.config.train_steps}, got {steps}")
         spacing = self.config.timestep_spacing
-        if name == "ddim":
+        if name == "consistency":
+            if int(steps) > CONSISTENCY_GRID:
+                raise ValueError(f"the consistency sampler takes 1..{CONSISTENCY_GRID} steps, got {steps}")
+            s = LCMScheduler(**self._common, original_inference_steps=CONSISTENCY_GRID, clip_sample=False,
+                             set_alpha_to_one=False, timestep_spacing=spacing)
+        elif name == "ddim":
             s = DDIMScheduler(**self._common, clip_sample=False, set_alpha_to_one=False, timestep_spacing=spacing)
         else:
             s = DPMSolverMultistepScheduler(**self._common, algorithm_type="dpmsolver++", solver_order=2,

@@ -5,8 +5,9 @@ with edit=...) run the same controller on a four-row batch
 
     ["", "", source prompt, target prompt]   (CFG layout of controllers.cfg_rows(1))
 
-so the choice of rule, the word look-ups for re-weighting and the attention store are
-built here once.
+or, for the consistency student (guidance is its input, not a second batch half), on the
+two rows [source prompt, target prompt], so the choice of rule, the word look-ups for
+re-weighting and the attention store are built here once.
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from .align import align_tokens
-from .controllers import AttentionEdit, KeepSource, Mirror, Refine, Reweight, WordSwap, cfg_rows
+from .controllers import AttentionEdit, KeepSource, Mirror, Refine, Reweight, Rows, WordSwap, cfg_rows
 from .spec import DEFAULT_TAU, EditSpec
 from .store import AttentionStore
 
@@ -25,14 +26,16 @@ class EditPlan:
     params: dict = field(default_factory=dict)
 
 
-def build_edit(text, steps: int, frames: int, spec: EditSpec, source_prompt: str, target_prompt: str) -> EditPlan:
+def build_edit(text, steps: int, frames: int, spec: EditSpec, source_prompt: str, target_prompt: str,
+               cfg_layout: bool = True) -> EditPlan:
     """The controller (with an attention store on the two conditional rows) of `spec` for encoded
-    `text` = ["", "", source_prompt, target_prompt] and `steps` denoising steps; the prompts are
-    the cleaned ones (Pipeline.check_edit)."""
-    rows = cfg_rows(1)
+    `text` = ["", "", source_prompt, target_prompt] (cfg_layout) or [source_prompt, target_prompt]
+    and `steps` denoising steps; the prompts are the cleaned ones (Pipeline.check_edit)."""
+    rows = cfg_rows(1) if cfg_layout else Rows(source=slice(0, 1), target=slice(1, 2))
+    src_row, tgt_row = rows.source.start, rows.target.start
     mode = spec.mode
     align_mode = {"swap": "swap", "refine": "refine"}.get(mode, "same" if target_prompt == source_prompt else "refine")
-    alignment = align_tokens(text, source_row=2, target_row=3, mode=align_mode)
+    alignment = align_tokens(text, source_row=src_row, target_row=tgt_row, mode=align_mode)
     if mode == "swap":
         rule = WordSwap(alignment, DEFAULT_TAU["swap"] if spec.tau is None else spec.tau)
     elif mode == "refine" or target_prompt != source_prompt:
@@ -40,14 +43,14 @@ def build_edit(text, steps: int, frames: int, spec: EditSpec, source_prompt: str
     else:
         rule = KeepSource()
     transforms = []
-    words = [w.lower() for w in text.words[3]]
+    words = [w.lower() for w in text.words[tgt_row]]
     for word, scale in spec.reweight:
         if word.lower() not in words:
             raise ValueError(f"cannot re-weight {word!r}: it is not a word of {target_prompt!r} ({', '.join(words)})")
-        transforms.append(Reweight(text.token_indices(3, words.index(word.lower())), scale))
+        transforms.append(Reweight(text.token_indices(tgt_row, words.index(word.lower())), scale))
     if spec.mirror is not None:
         transforms.append(Mirror(spec.mirror))
-    store = AttentionStore(text, rows=slice(2, 4), frames=frames)
+    store = AttentionStore(text, rows=slice(src_row, tgt_row + 1), frames=frames)
     controller = AttentionEdit(rows, steps, rule, transforms, self_inject=spec.self_inject, observers=[store])
     return EditPlan(controller, store, spec.params(getattr(rule, "tau", None)))
 

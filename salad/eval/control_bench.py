@@ -183,13 +183,16 @@ def _setting_name(s: dict) -> str:
     return "Controlled (" + ", ".join(parts) + ")"
 
 
-def evaluate_control(pipe, dataset, evaluator, samples: int = 32, steps: int = 50, cfg: float = 7.5,
-                     settings: Sequence[dict] = ({"strength": 1.0},), joints: Sequence[int] = (0,),
+def evaluate_control(pipe, dataset, evaluator, samples: int = 32, steps: int | None = None, cfg: float = 7.5,
+                     sampler: str = "ddim", settings: Sequence[dict] = ({"strength": 1.0},), joints: Sequence[int] = (0,),
                      density: str = "100%", seed: int = 0, max_frames: int = 196,
                      progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run the protocol on `dataset` (a MotionDataset; its items are the test motions) for each guidance
-    setting: a dict with keys among SETTING_KEYS, passed to Pipeline.control."""
+    setting: a dict with keys among SETTING_KEYS, passed to Pipeline.control. sampler: "ddim" or
+    "consistency" (the distilled student), for the unconstrained and the controlled rows alike."""
     import torch
+
+    steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler)
 
     settings = [dict(s) for s in settings]
     for s in settings:
@@ -233,10 +236,10 @@ def evaluate_control(pipe, dataset, evaluator, samples: int = 32, steps: int = 5
         return seed * 100003 + k
 
     run("Unconstrained", lambda k, c: pipe.generate(c.caption, seconds=c.frames / FPS, seed=seed_of(k), steps=steps,
-                                                    cfg=cfg))
+                                                    cfg=cfg, sampler=sampler))
     for s in settings:
         run(_setting_name(s), lambda k, c, s=s: pipe.control(c.caption, signal=c.signal, seed=seed_of(k), steps=steps,
-                                                             cfg=cfg, **s))
+                                                             cfg=cfg, sampler=sampler, **s))
         rows[_setting_name(s)]["setting"] = s
     free = rows["Unconstrained"]["realism"]
     for name, r in rows.items():
@@ -247,6 +250,7 @@ def evaluate_control(pipe, dataset, evaluator, samples: int = 32, steps: int = 5
     return {
         "rows": rows,
         "protocol": {"dataset": str(dataset.root), "samples": len(cases), "pool": pool, "steps": steps, "cfg": cfg,
+                     "sampler": sampler,
                      "joints": [sk.JOINT_NAMES[j] for j in joints], "density": str(density), "seed": seed,
                      "max_frames": max_frames, "reference_motions": len(dataset.items),
                      "torch_threads": torch.get_num_threads(), "device": str(pipe.device),

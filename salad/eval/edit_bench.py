@@ -36,15 +36,13 @@ def regenerate(pipe, prompts: Sequence[str], seeds: Sequence[int], frames: int, 
     seed=seeds[i])` starts from (generate_batch shares one seed across rows, so it cannot pair them)."""
     import torch
 
-    from ..diffusion.sampling import sample
-
     if len(prompts) != len(seeds) or not prompts:
         raise ValueError("give one seed per prompt")
     prompts = [pipe.check_prompt(p) for p in prompts]
     steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler)
     noise = torch.cat([pipe.noise(1, frames, int(s)) for s in seeds])
-    text = pipe.encode_text([""] * len(prompts) + list(prompts))
-    z = sample(pipe.model_fn(text, auto=False), noise, pipe.schedule, sampler=sampler, steps=steps, cfg_scale=cfg)
+    text = pipe.sampler_text(list(prompts), sampler)
+    z = pipe.denoise(text, noise, sampler, steps, cfg, auto=False, seed=[int(s) for s in seeds])
     motions = pipe.decode(z, frames, list(prompts), int(seeds[0]))
     for m, s in zip(motions, seeds):
         m.seed = int(s)

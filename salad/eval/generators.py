@@ -16,7 +16,8 @@ class ModelGenerator:
 
     uses_references = False
 
-    def __init__(self, pipe, steps: int = 50, sampler: str = "ddim", cfg: float = 7.5, seed: int = 0):
+    def __init__(self, pipe, steps: int | None = None, sampler: str = "ddim", cfg: float = 7.5, seed: int = 0):
+        steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler)
         self.pipe, self.steps, self.sampler, self.cfg, self.seed = pipe, steps, sampler, cfg, seed
         self.calls = 0
 
@@ -24,7 +25,7 @@ class ModelGenerator:
         """What makes two runs' generations the same (for resuming an evaluation)."""
         if not hasattr(self, "_weights"):
             digest = hashlib.sha256()
-            for model in (self.pipe.denoiser, self.pipe.vae):
+            for model in (self.pipe.network(self.sampler), self.pipe.vae):
                 for t in model.state_dict().values():
                     digest.update(t.detach().float().cpu().numpy().tobytes())
             self._weights = digest.hexdigest()

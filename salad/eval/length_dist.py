@@ -29,7 +29,6 @@ from scipy.spatial.distance import jensenshannon
 from scipy.stats import wasserstein_distance
 
 from ..files import atomic_write, atomic_write_text
-from ..diffusion.sampling import sample
 from ..motion.representation import FPS
 
 LENGTH_UNIT = 4          # the VAE's temporal downsampling: generated lengths are multiples of it
@@ -102,9 +101,9 @@ def generate_auto_length(pipe, prompts: list[str], seed: int = 0, steps: int = 5
     motion ends where its own activation drops."""
     prompts = [pipe.check_prompt(p) for p in prompts]
     steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler, len(prompts))
-    text = pipe.encode_text([""] * len(prompts) + prompts)
-    z = sample(pipe.model_fn(text, auto=True), pipe.noise(len(prompts), pipe.canvas_frames, seed), pipe.schedule,
-               sampler=sampler, steps=steps, cfg_scale=cfg)
+    text = pipe.sampler_text(prompts, sampler)
+    z = pipe.denoise(text, pipe.noise(len(prompts), pipe.canvas_frames, seed), sampler, steps, cfg, auto=True,
+                     seed=seed)
     return pipe.decode(z, None, prompts, seed)
 
 

@@ -19,6 +19,9 @@ import torch.nn as nn
 from .attention import CROSS, SKELETAL, TEMPORAL, Attention
 from .dropout import Dropout
 
+# Guidance scales of a few units are spread over the sinusoid's frequencies like timesteps.
+GUIDANCE_EMBED_SCALE = 100.0
+
 
 @dataclass
 class DenoiserConfig:
@@ -36,6 +39,9 @@ class DenoiserConfig:
     # Lets one model generate both fixed-length motions (key-padding mask) and
     # "auto"-length ones on a full canvas whose end the VAE's activation channel marks.
     length_modes: bool = True
+    # A consistency-distilled student takes the classifier-free guidance scale as a condition
+    # (embedded like the timestep), so one forward per step stands in for CFG's two.
+    guidance_embedding: bool = False
 
 
 def sinusoid(positions: torch.Tensor, dim: int) -> torch.Tensor:
@@ -110,6 +116,12 @@ class Denoiser(nn.Module):
         self.pe_drop = Dropout(c.dropout)
         self.time_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
         self.length_mode = nn.Embedding(2, d) if c.length_modes else None
+        self.guidance_mlp = None
+        if c.guidance_embedding:
+            self.guidance_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+            # zero at first, so a student initialised from its teacher starts as the teacher
+            nn.init.zeros_(self.guidance_mlp[-1].weight)
+            nn.init.zeros_(self.guidance_mlp[-1].bias)
         self.text_proj = nn.Linear(c.text_dim, d)
 
         n_skip = c.layers // 2
@@ -138,11 +150,12 @@ class Denoiser(nn.Module):
 
     def forward(self, z: torch.Tensor, t: torch.Tensor, text: torch.Tensor, text_mask: torch.Tensor | None = None,
                 frame_mask: torch.Tensor | None = None, pooled_text: torch.Tensor | None = None,
-                auto_length: torch.Tensor | None = None) -> torch.Tensor:
+                auto_length: torch.Tensor | None = None, guidance: torch.Tensor | None = None) -> torch.Tensor:
         """z (B, T, 7, latent_dim) noisy latents; t (B,) timesteps; text (B, L, text_dim) token
         features with text_mask (B, L) True for real tokens; frame_mask (B, T) True for real
         latent frames; pooled_text (B, text_dim) for the no-cross-attention variant;
-        auto_length (B,) bool, True for full-canvas (length decided by the decoder) samples."""
+        auto_length (B,) bool, True for full-canvas (length decided by the decoder) samples;
+        guidance (B,) the CFG scale a distilled student is to reproduce (guidance_embedding only)."""
         B, T, J, _ = z.shape
         c = self.config
         if c.cross_attention:
@@ -162,6 +175,10 @@ class Denoiser(nn.Module):
         if self.length_mode is not None:
             mode = torch.zeros(B, dtype=torch.long, device=z.device) if auto_length is None else auto_length.long()
             emb = emb + self.length_mode(mode)
+        if self.guidance_mlp is not None:
+            if guidance is None:
+                raise ValueError("this denoiser is a distilled student and needs the guidance scale")
+            emb = emb + self.guidance_mlp(sinusoid(guidance * GUIDANCE_EMBED_SCALE, c.dim).to(h.dtype))
 
         skips = []
         for i, layer in enumerate(self.layers):

@@ -79,3 +79,20 @@ class VAESANTrainConfig:
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, warmup_steps=100, grad_clip=0.0))
     run: RunConfig = field(default_factory=lambda: RunConfig(out_dir="runs/vae_san"))
     window_overhang: float = 0.5
+
+
+@dataclass
+class ConsistencyTrainConfig:
+    """Latent consistency distillation of a trained denoiser (the teacher, with classifier-free
+    guidance) into a student that samples in 1-4 steps with the guidance scale as a condition."""
+    teacher: str = "assets/model"     # a model directory (vae/ + denoiser/); read only
+    guidance_min: float = 2.0         # the CFG scales the student learns, drawn uniformly per sample
+    guidance_max: float = 10.0
+    huber_c: float = 0.001            # pseudo-Huber loss on the latents (LCM's choice)
+    auto_length_prob: float = 0.3
+    data: DataConfig = field(default_factory=lambda: DataConfig(balance=0.5))
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=2e-4, warmup_steps=100, batch_size=32,
+                                                                    max_steps=6000))
+    run: RunConfig = field(default_factory=lambda: RunConfig(out_dir="runs/consistency", checkpoint_every=100,
+                                                              log_every=10))
+    target_decay: float = 0.95        # EMA of the student that gives the distillation target; it is exported

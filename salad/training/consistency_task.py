@@ -1,0 +1,152 @@
+"""Latent consistency distillation (LCM; MotionLCM for motion) of the trained denoiser.
+
+Each step draws a clean latent batch as denoiser training does, a timestep t of the teacher's
+50-step DDIM grid and a guidance scale w per sample. The teacher, with classifier-free guidance
+at w (both rows in one forward), takes one DDIM step from z_t to z_s, s = t - 20; the student's
+consistency function at (z_t, t) learns to match the target network's at (z_s, s). The target
+network is an EMA of the student (decay 0.95) and is what gets exported. The student starts as
+a copy of the teacher with a zero-initialised guidance embedding, so at step 0 it is the
+teacher without guidance.
+"""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from ..checkpoint import CheckpointError
+from ..config import from_dict, to_dict
+from ..diffusion.consistency import consistency_fn, grid_timesteps
+from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
+from ..models.denoiser import Denoiser
+from ..models.io import load_denoiser, save_denoiser, vae_checksum, vae_latent_checksums
+from .configs import ConsistencyTrainConfig, DenoiserTrainConfig
+from .denoiser_task import DenoiserTask
+
+
+class ConsistencyTraining(nn.Module):
+    def __init__(self, teacher: Denoiser, schedule: NoiseSchedule, target_decay: float, huber_c: float):
+        super().__init__()
+        cfg = copy.deepcopy(teacher.config)
+        cfg.guidance_embedding = True
+        self.student = Denoiser(cfg)
+        missing, unexpected = self.student.load_state_dict(teacher.state_dict(), strict=False)
+        if unexpected or any(not k.startswith("guidance_mlp.") for k in missing):
+            raise CheckpointError(f"the student does not fit the teacher (missing {missing}, unexpected {unexpected})")
+        self.target = copy.deepcopy(self.student).requires_grad_(False)
+        self.teacher = teacher.requires_grad_(False)
+        self.schedule, self.target_decay, self.huber_c = schedule, target_decay, huber_c
+        self.k = schedule.config.train_steps // CONSISTENCY_GRID
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        self.teacher.eval()      # dropout off: they give targets, not gradients
+        self.target.eval()
+        return self
+
+    @torch.no_grad()
+    def update_target(self) -> None:
+        for pt, ps in zip(self.target.parameters(), self.student.parameters()):
+            pt.lerp_(ps.detach(), 1.0 - self.target_decay)
+
+    def forward(self, batch: dict):
+        # the target follows the student as updated by the last optimiser step
+        self.update_target()
+        z0, noise, t, w = batch["latents"], batch["noise"], batch["timesteps"], batch["guidance"]
+        s = (t - self.k).clamp_min(0)
+        cond = dict(text=batch["text"], text_mask=batch["text_mask"], frame_mask=batch["frame_mask"],
+                    pooled_text=batch["pooled"], auto_length=batch["auto"])
+        zt = self.schedule.add_noise(z0, noise, t)
+        pred = consistency_fn(self.schedule, zt, self.student(zt, t, guidance=w, **cond).float(), t)
+        with torch.no_grad():
+            fm = batch["frame_mask"]
+            out = self.teacher(torch.cat((zt, zt)), torch.cat((t, t)), batch["text2"], batch["text_mask2"],
+                               None if fm is None else torch.cat((fm, fm)), pooled_text=batch["pooled2"],
+                               auto_length=torch.cat((batch["auto"], batch["auto"]))).float()
+            uncond, c = out.chunk(2)
+            v = uncond + w.view(-1, 1, 1, 1) * (c - uncond)
+            x0, eps = self.schedule.to_x0_eps(zt, v, t)
+            zs = self.schedule.add_noise(x0, eps, s)         # the teacher's DDIM step t -> s
+            target = consistency_fn(self.schedule, zs, self.target(zs, s, guidance=w, **cond).float(), s)
+        err = torch.sqrt((pred - target) ** 2 + self.huber_c ** 2) - self.huber_c
+        err = err.mean(dim=(2, 3))                           # (B, latent frames)
+        if fm is not None:
+            m = fm.float()
+            loss = (err * m).sum() / m.sum().clamp_min(1.0)
+        else:
+            loss = err.mean()
+        return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}
+
+
+def _pad_tokens(tokens: torch.Tensor, mask: torch.Tensor, length: int) -> tuple[torch.Tensor, torch.Tensor]:
+    extra = length - tokens.shape[1]
+    if extra <= 0:
+        return tokens, mask
+    return F.pad(tokens, (0, 0, 0, extra)), F.pad(mask, (0, extra), value=False)
+
+
+class ConsistencyTask:
+    kind = "consistency"
+
+    def __init__(self, cfg: ConsistencyTrainConfig, show_progress: bool = True):
+        if not 0.0 <= cfg.guidance_min <= cfg.guidance_max:
+            raise ValueError(f"need 0 <= guidance_min <= guidance_max, got {cfg.guidance_min}, {cfg.guidance_max}")
+        if not 0.0 < cfg.target_decay < 1.0:
+            raise ValueError(f"target_decay must be in (0, 1), got {cfg.target_decay}")
+        self.cfg = cfg
+        root = Path(cfg.teacher)
+        if not (root / "vae").is_dir() or not (root / "denoiser").is_dir():
+            raise CheckpointError(f"teacher {root}: expected a model directory with vae/ and denoiser/")
+        teacher, doc = load_denoiser(root / "denoiser")
+        tcfg = doc["config"]
+        if tcfg.get("vae_checksum") and tcfg["vae_checksum"] not in vae_latent_checksums(root / "vae"):
+            raise CheckpointError(f"{root}: the denoiser was trained on a different VAE than {root / 'vae'}")
+        if teacher.config.guidance_embedding:
+            raise CheckpointError(f"{root / 'denoiser'} is a distilled student already; distil a CFG-trained denoiser")
+        self.teacher_doc = doc
+        self.vae_checksum = vae_checksum(root / "vae")
+        # Batches are the denoiser's own (same latents, captions, class balance, length modes),
+        # with every caption kept: the teacher's unconditional row is added here.
+        self.data = DenoiserTask(DenoiserTrainConfig(
+            data=cfg.data, model=teacher.config, diffusion=from_dict(DiffusionConfig, tcfg["diffusion"]),
+            vae=str(root / "vae"), text_encoder=tcfg["text_encoder"], text_dropout=0.0,
+            auto_length_prob=cfg.auto_length_prob), show_progress=show_progress)
+        self.schedule = self.data.schedule
+        self.grid = grid_timesteps(self.schedule)
+        self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c)
+
+    def batch(self, rng: np.random.Generator) -> dict:
+        b = self.data.batch(rng)
+        B = b["latents"].shape[0]
+        g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+        b["timesteps"] = self.grid[torch.randint(0, len(self.grid), (B,), generator=g)]
+        lo, hi = self.cfg.guidance_min, self.cfg.guidance_max
+        b["guidance"] = lo + (hi - lo) * torch.rand(B, generator=g)
+        empty, empty_mask, empty_pooled = self.data.text.batch([""] * B)
+        L = max(empty.shape[1], b["text"].shape[1])
+        empty, empty_mask = _pad_tokens(empty, empty_mask, L)
+        text, mask = _pad_tokens(b["text"], b["text_mask"], L)
+        b["text"], b["text_mask"] = text, mask
+        b["text2"], b["text_mask2"] = torch.cat((empty, text)), torch.cat((empty_mask, mask))
+        b["pooled2"] = torch.cat((empty_pooled, b["pooled"]))
+        return b
+
+    def loss(self, model: nn.Module, batch: dict):
+        return model(batch)
+
+    def config_dict(self) -> dict:
+        return to_dict(self.cfg)
+
+    def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
+        teacher_meta = self.teacher_doc.get("meta", {})
+        consistency = {"guidance": [self.cfg.guidance_min, self.cfg.guidance_max], "grid_steps": CONSISTENCY_GRID,
+                       "teacher": {"path": self.cfg.teacher, "step": teacher_meta.get("step"),
+                                   "sha256": self.teacher_doc["files"]["denoiser"]["sha256"]}}
+        save_denoiser(path, model.target, self.schedule.config, self.data.text_encoder.spec(), self.data.canvas,
+                      self.vae_checksum, meta={**meta, "consistency": consistency, "train_config": to_dict(self.cfg),
+                                               "latent_scale": self.data.latent_scale})

@@ -1,0 +1,268 @@
+"""The consistency-distilled student: its sampler, its distillation and the pipeline paths
+that run it (generate, edit, control, real-motion edits)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from salad.diffusion.consistency import consistency_fn, consistency_sample, grid_timesteps
+from conftest import consistency_toml
+from salad.diffusion.schedule import DiffusionConfig, NoiseSchedule
+
+
+def _oracle(schedule: NoiseSchedule, x0: torch.Tensor):
+    """A v-prediction model that knows the clean latent: its x0 estimate is x0 at every timestep."""
+    a = schedule.alphas_cumprod
+
+    def fn(x, t):
+        at = a[t].view(-1, *([1] * (x.ndim - 1))).to(x.dtype)
+        eps = (x - at.sqrt() * x0) / (1 - at).sqrt()
+        return at.sqrt() * eps - (1 - at).sqrt() * x0
+    return fn
+
+
+def test_grid_is_the_teachers_50_step_ddim_grid():
+    s = NoiseSchedule(DiffusionConfig())
+    grid = grid_timesteps(s)
+    assert grid[0] == 19 and grid[-1] == 999 and len(grid) == 50
+    assert set(int(t) for t in s.sampler("consistency", 4).timesteps) <= set(grid.tolist())
+
+
+def test_consistency_function_is_the_identity_at_the_boundary():
+    s = NoiseSchedule(DiffusionConfig())
+    z = torch.randn(3, 4, 7, 8)
+    out = torch.randn_like(z)
+    assert torch.allclose(consistency_fn(s, z, out, torch.zeros(3, dtype=torch.long)), z)
+    # and the x0 estimate itself far from it
+    t = torch.full((3,), 999)
+    x0, _ = s.to_x0_eps(z, out, t)
+    assert torch.allclose(consistency_fn(s, z, out, t), x0, atol=1e-4)
+
+
+@pytest.mark.parametrize("steps", [1, 2, 4])
+def test_consistency_sampling_returns_the_oracles_clean_latent(steps):
+    s = NoiseSchedule(DiffusionConfig())
+    x0 = torch.randn(2, 6, 7, 8)
+    seen = []
+    out = consistency_sample(_oracle(s, x0), torch.randn_like(x0), s, steps, generator=torch.Generator().manual_seed(0),
+                             on_step=lambda i, n, x: seen.append((i, n)))
+    assert torch.allclose(out, x0, atol=1e-3)
+    assert seen == [(i + 1, steps) for i in range(steps)]
+
+
+def test_shared_noise_renoises_every_row_alike():
+    s = NoiseSchedule(DiffusionConfig())
+    rows = []
+
+    def model(x, t):
+        rows.append(x.clone())
+        return torch.zeros_like(x)
+    noise = torch.randn(1, 6, 7, 8).repeat(2, 1, 1, 1)
+    consistency_sample(model, noise, s, 3, generator=torch.Generator().manual_seed(1), shared_noise=True)
+    assert all(torch.equal(x[0], x[1]) for x in rows)
+
+
+def test_consistency_sampler_steps_are_bounded_by_the_grid():
+    s = NoiseSchedule(DiffusionConfig())
+    assert [int(t) for t in s.sampler("consistency", 4).timesteps] == [999, 759, 499, 259]
+    with pytest.raises(ValueError, match="1..50"):
+        s.sampler("consistency", 51)
+
+
+# ---------------------------------------------------------------- distillation
+
+def test_a_fresh_student_is_its_teacher_without_guidance(tiny_model):
+    from salad.models.io import load_denoiser
+    from salad.training.consistency_task import ConsistencyTraining
+
+    teacher, _ = load_denoiser(tiny_model / "denoiser")
+    teacher.eval()
+    m = ConsistencyTraining(teacher, NoiseSchedule(DiffusionConfig()), 0.95, 0.001).eval()
+    g = torch.Generator().manual_seed(0)
+    z = torch.randn(2, 5, 7, teacher.config.latent_dim, generator=g)
+    text = torch.randn(2, 4, teacher.config.text_dim, generator=g)
+    t = torch.tensor([999, 259])
+    with torch.no_grad():
+        ref = teacher(z, t, text)
+        for w in (2.0, 7.5):
+            out = m.student(z, t, text, guidance=torch.full((2,), w))
+            assert torch.allclose(out, ref, atol=1e-5)
+    with pytest.raises(ValueError, match="guidance"):
+        m.student(z, t, text)
+    assert not any(p.requires_grad for p in m.teacher.parameters())
+    assert not any(p.requires_grad for p in m.target.parameters())
+
+
+def test_distillation_trains_resumes_and_exports_with_its_teacher(tiny_student, tiny_model, tiny_dataset, tmp_path):
+    from salad.cli import main
+    from salad.models.io import load_denoiser
+
+    student, doc = load_denoiser(tiny_student / "consistency")
+    assert student.config.guidance_embedding
+    info = doc["meta"]["consistency"]
+    _, teacher_doc = load_denoiser(tiny_model / "denoiser")
+    assert info["guidance"] == [2.0, 8.0] and info["grid_steps"] == 50
+    assert info["teacher"]["sha256"] == teacher_doc["files"]["denoiser"]["sha256"]
+    # the guidance embedding left zero is a student that ignores guidance: training moved it
+    last = student.guidance_mlp[-1]
+    assert last.weight.abs().sum() > 0
+    # a resumed run goes on from its state
+    run = tmp_path / "run"
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=2)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
+    consistency_toml(cfg, tiny_dataset, tiny_model, steps=4)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
+    rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [1, 2, 3, 4]
+    assert all(np.isfinite(r["loss"]) for r in rows)
+
+
+def test_distillation_refuses_a_student_as_teacher_and_a_teacher_flag_elsewhere(tiny_student, tiny_dataset,
+                                                                                  tmp_path, capsys):
+    from salad.cli import main
+
+    fake = tmp_path / "fake"
+    fake.mkdir()
+    (fake / "vae").symlink_to((tiny_student / "vae").resolve())
+    (fake / "denoiser").symlink_to((tiny_student / "consistency").resolve())
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, fake, steps=1)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
+    assert "distilled student already" in capsys.readouterr().err
+    assert main(["train", "denoiser", "--config", str(cfg), "--teacher", str(fake)]) == 2
+    assert "--teacher applies to consistency" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- pipeline
+
+@pytest.fixture(scope="module")
+def student_pipe(tiny_student):
+    from salad.pipeline import load_pipeline
+
+    return load_pipeline(tiny_student, bf16=False)
+
+
+def test_pipeline_without_a_student_says_how_to_get_one(pipe):
+    with pytest.raises(ValueError, match="salad train consistency"):
+        pipe.generate("a person walks forward", seconds=2, sampler="consistency")
+
+
+@pytest.mark.parametrize("steps", [1, 4])
+def test_consistency_generate_runs_the_student_with_attention(student_pipe, steps):
+    calls = []
+    m = student_pipe.generate("a person walks forward", seconds=2, seed=3, sampler="consistency", steps=steps,
+                              return_attention=True, progress=lambda i, n: calls.append(i))
+    assert m.joints.shape[0] == 40 and np.isfinite(m.joints).all()
+    assert calls == list(range(1, steps + 1))
+    assert m.attention.steps == steps and np.isfinite(m.attention.data).all()
+    assert m.attention.words == ["a", "person", "walks", "forward"]
+    again = student_pipe.generate("a person walks forward", seconds=2, seed=3, sampler="consistency", steps=steps)
+    assert np.allclose(again.joints, m.joints, atol=1e-5)
+
+
+def test_consistency_default_steps_and_bounds(student_pipe):
+    assert student_pipe.check_sampling(None, 5.0, "consistency")[0] == 4
+    assert student_pipe.check_sampling(None, 5.0, "ddim")[0] == 50
+    with pytest.raises(ValueError, match="1..50"):
+        student_pipe.generate("a person walks forward", seconds=2, sampler="consistency", steps=51)
+    with pytest.raises(ValueError, match="distilled for cfg 2..8"):
+        student_pipe.generate("a person walks forward", seconds=2, sampler="consistency", cfg=12.0)
+
+
+@pytest.mark.parametrize("mode,kw", [("swap", dict(target_prompt="a person walks backward")),
+                                     ("refine", dict(target_prompt="a person walks forward slowly")),
+                                     ("reweight", dict(reweight={"forward": 2.0})),
+                                     ("mirror", dict(mirror="all"))])
+def test_consistency_edits_run_all_four_modes(student_pipe, mode, kw):
+    res = student_pipe.edit("a person walks forward", mode=mode, seconds=2, seed=1, sampler="consistency", **kw)
+    assert res.source.joints.shape == res.edited.joints.shape
+    assert res.params["sampler"] == "consistency" and res.params["steps"] == 4
+    assert res.source.attention is not None and res.edited.attention is not None
+
+
+def test_consistency_edit_keeps_the_source_of_a_plain_generate(student_pipe):
+    """The source branch of an edit is the motion generate gives for the same seed."""
+    res = student_pipe.edit("a person walks forward", target_prompt="a person walks backward",
+                            mode="swap", seconds=2, seed=5, sampler="consistency")
+    alone = student_pipe.generate("a person walks forward", seconds=2, seed=5, sampler="consistency")
+    assert np.allclose(res.source.joints, alone.joints, atol=1e-4)
+
+
+def test_a_teacher_checkpoint_is_not_taken_for_a_student(tiny_student, tmp_path):
+    from salad.checkpoint import CheckpointError
+    from salad.pipeline import load_pipeline
+
+    model = tmp_path / "m"
+    model.mkdir()
+    for part in ("vae", "denoiser"):
+        (model / part).symlink_to((tiny_student / part).resolve())
+    (model / "consistency").symlink_to((tiny_student / "denoiser").resolve())
+    with pytest.raises(CheckpointError, match="not a consistency-distilled student"):
+        load_pipeline(model)
+
+
+def test_consistency_control_follows_targets_and_composes_with_an_edit(student_pipe):
+    from salad.motion.control import control_errors, make_signal
+
+    free = student_pipe.generate("a person walks forward", seconds=1.6, seed=5, sampler="consistency")
+    targets = free.joints.copy()
+    targets[:, 0, 0] += 0.5                       # the pelvis half a metre to the left
+    mask = np.zeros((32, 22), dtype=bool)
+    mask[:, 0] = True
+    sig = make_signal(targets, mask)
+    steps = []
+    guided = student_pipe.control("a person walks forward", signal=sig, seed=5, sampler="consistency",
+                                  progress=lambda i, n: steps.append(n))
+    assert steps == [4] * 4
+    before = np.abs(free.joints[:, 0, 0] - targets[:, 0, 0]).mean()
+    assert control_errors(guided.joints, sig).mean() < 0.5 * before
+    off = student_pipe.control("a person walks forward", signal=sig, seed=5, sampler="consistency", strength=0.0)
+    np.testing.assert_allclose(off.joints, free.joints, atol=5e-3)
+    res = student_pipe.control("a person walks forward", signal=sig, seed=5, sampler="consistency",
+                               edit={"mirror": "all"})
+    assert res.params["sampler"] == "consistency" and res.params["steps"] == 4
+    assert control_errors(res.edited.joints, sig).mean() < 0.5 * before
+    with pytest.raises(ValueError, match="time-travel"):
+        student_pipe.control("a person walks forward", signal=sig, sampler="consistency", repeats=2)
+    with pytest.raises(ValueError, match="ddim or consistency"):
+        student_pipe.control("a person walks forward", signal=sig, sampler="dpm")
+
+
+def test_consistency_real_edit_keeps_the_reconstruction_exactly(student_pipe, tiny_dataset):
+    from salad.editing.real import decode, encode, read_real
+
+    name = (tiny_dataset / "test.txt").read_text().split()[0]
+    feats = np.load(tiny_dataset / "new_joint_vecs" / f"{name}.npy")
+    real = read_real(student_pipe, feats, trim=True)
+    vae = decode(student_pipe, encode(student_pipe, real), ["a person walks forward"])[0]
+    res = student_pipe.edit_real(feats, "a person walks forward", "a person walks backward", mode="swap",
+                                 sampler="consistency", trim=True)
+    np.testing.assert_allclose(res.source.joints, vae.joints, atol=1e-3)
+    assert np.abs(res.edited.joints - res.source.joints).max() > 1e-3
+    assert res.params["sampler"] == "consistency" and res.params["steps"] == 4
+    assert res.source.info["mpjpe_m"] >= 0 and res.edited.attention.words[2] == "walks"
+    with pytest.raises(ValueError, match="ddim .*or consistency"):
+        student_pipe.edit_real(feats, "a person walks forward", mode="mirror", sampler="dpm", trim=True)
+
+
+def test_cli_samples_with_the_student(tiny_student, tiny_dataset, tmp_path, capsys):
+    from salad.cli import main
+    from salad.cli.common import SAMPLER_CHOICES
+    from salad.diffusion.schedule import SAMPLERS
+
+    assert SAMPLER_CHOICES == SAMPLERS
+    out = tmp_path / "walk.npy"
+    assert main(["generate", "a person walks forward", "--seconds", "2", "--sampler", "consistency", "--cfg", "5",
+                 "--model", str(tiny_student), "-o", str(out)]) == 0
+    assert np.load(out).shape[0] == 40
+    name = (tiny_dataset / "test.txt").read_text().split()[0]
+    edited = tmp_path / "edited.npy"
+    assert main(["edit-real", str(tiny_dataset / "new_joint_vecs" / f"{name}.npy"), "--source",
+                 "a person walks forward", "--mode", "mirror", "--mirror", "all", "--sampler", "consistency",
+                 "--trim", "--model", str(tiny_student), "-o", str(edited)]) == 0
+    assert "student edit" in capsys.readouterr().out and edited.exists()
+    assert main(["generate", "a person walks forward", "--sampler", "consistency", "--cfg", "20",
+                 "--model", str(tiny_student), "-o", str(out)]) == 2
+    assert "distilled for cfg" in capsys.readouterr().err
