@@ -169,6 +169,25 @@ def test_side_by_side_reuses_an_unchanged_panel(tmp_path, walk):
     assert cache.get("big") is None, "panels over the limit are not kept"
 
 
+def test_preview_renders_without_multisampling(tmp_path, walk):
+    from salad.render import video
+
+    smooth = render_frames(walk, size=SIZE)
+    assert last_render_stats()["msaa_samples"] == 4
+    rough = render_frames(walk, size=SIZE, antialias=False)
+    assert last_render_stats()["msaa_samples"] == 0
+    assert rough.shape == smooth.shape
+    diff = np.abs(rough.astype(np.int16) - smooth.astype(np.int16)).max(-1)
+    # only edges change: a few percent of the pixels, by a visible amount
+    assert 0.001 < (diff > 24).mean() < 0.15
+    np.testing.assert_array_equal(render_frames(walk, size=SIZE), smooth)   # and the next render is smooth again
+    # a preview panel is never reused for the antialiased render, nor the other way round
+    video.panel_cache.clear()
+    render_side_by_side([walk, walk[:20]], ["a", "b"], tmp_path / "p.mp4", size=SIZE, antialias=False)
+    render_side_by_side([walk, walk[:20]], ["a", "b"], tmp_path / "f.mp4", size=SIZE)
+    assert last_render_stats()["reused_panels"] == 0
+
+
 def test_camera_zoom_snaps_outwards():
     a = synthetic_walk(40)
     b = a.copy()

@@ -148,18 +148,39 @@ def _make_renderer():
 
     class ColorOnly(pr.Renderer):
         """Resolves the multisampled colour buffer and reads it back, skipping pyrender's
-        depth read-back and conversion, which cost as much as the drawing itself."""
+        depth read-back and conversion, which cost as much as the drawing itself.
+
+        `samples` replaces pyrender's fixed 4x MSAA: in a software GL the resolve is a large
+        share of a frame, so previews render with fewer samples (0: none, read straight from
+        the draw buffer)."""
 
         def __init__(self, width, height):
             super().__init__(width, height)
             self._program_cache = ProgramCache()
+            self.samples = style.MSAA_SAMPLES
+            self._ms_config = None      # (width, height, samples) the draw buffers were allocated for
+
+        def _configure_main_framebuffer(self):
+            super()._configure_main_framebuffer()
+            config = (*self._main_fb_dims, self.samples)
+            if config == self._ms_config or (self._ms_config is None and self.samples == 4):
+                self._ms_config = config
+                return
+            w, h = self._main_fb_dims
+            for buf, fmt in ((self._main_cb_ms, GL.GL_RGBA), (self._main_db_ms, GL.GL_DEPTH_COMPONENT24)):
+                GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, buf)
+                GL.glRenderbufferStorageMultisample(GL.GL_RENDERBUFFER, self.samples, fmt, w, h)
+            self._ms_config = config
 
         def _read_main_framebuffer(self, scene, flags):
             w, h = self._main_fb_dims
-            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
-            GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, self._main_fb)
-            GL.glBlitFramebuffer(0, 0, w, h, 0, 0, w, h, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR)
-            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb)
+            if self.samples:
+                GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
+                GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, self._main_fb)
+                GL.glBlitFramebuffer(0, 0, w, h, 0, 0, w, h, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR)
+                GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb)
+            else:
+                GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
             GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
             buf = GL.glReadPixels(0, 0, w, h, GL.GL_RGB, GL.GL_UNSIGNED_BYTE)
             img = np.frombuffer(buf, dtype=np.uint8).reshape(h, w, 3)

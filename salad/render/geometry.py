@@ -282,6 +282,11 @@ def path_ribbon(path: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]
 
 # ------------------------------------------------------------------ the floor
 
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
 def floor_mesh() -> tuple[np.ndarray, np.ndarray]:
     """A round checker floor centred on the origin that fades into the background."""
     tile, radius = style.FLOOR_TILE, style.FLOOR_RADIUS
@@ -294,11 +299,13 @@ def floor_mesh() -> tuple[np.ndarray, np.ndarray]:
     corners = np.array([[0, 0], [0, 1], [1, 1], [1, 0]])  # counter-clockwise seen from +Y
     xz = (np.stack([ix, iz], 1)[:, None, :] + corners[None]) * tile
     dark = ((ix + iz) % 2 == 0)[:, None, None]
-    base = np.where(dark, style.FLOOR_DARK, style.FLOOR_LIGHT)
     dist = np.linalg.norm(xz, axis=-1)
+    mean = (style.FLOOR_DARK + style.FLOOR_LIGHT) / 2
+    contrast = 1.0 - _smoothstep((dist - style.FLOOR_CONTRAST_START)
+                                 / (style.FLOOR_CONTRAST_END - style.FLOOR_CONTRAST_START))
+    base = mean + (np.where(dark, style.FLOOR_DARK, style.FLOOR_LIGHT) - mean) * contrast[..., None]
     start = style.FLOOR_FADE_START * radius
-    fade = np.clip((dist - start) / (radius - start), 0.0, 1.0)
-    fade = fade * fade * (3 - 2 * fade)
+    fade = _smoothstep((dist - start) / (radius - start))
     rgb = base * (1 - fade[..., None]) + style.BACKGROUND * fade[..., None]
     pos = np.stack([xz[..., 0], np.zeros_like(dist), xz[..., 1]], axis=-1)
     q = 4 * np.arange(len(ix))

@@ -30,8 +30,13 @@ BACKGROUND = hex_rgb("#e6e9ed")
 FLOOR_LIGHT = hex_rgb("#f4f5f7")
 FLOOR_DARK = hex_rgb("#d5d9de")
 FLOOR_TILE = 0.5            # metres per checker square
+MSAA_SAMPLES = 4            # multisampling of every frame (salad.render.engine)
 FLOOR_RADIUS = 14.0         # the floor fades into the background over its outer part
-FLOOR_FADE_START = 0.35     # fraction of the radius that keeps full contrast
+FLOOR_FADE_START = 0.35     # fraction of the radius that keeps its colours
+# The checker's contrast fades out between these distances (m): far squares are a few pixels
+# wide, and without multisampling (previews) their edges would shimmer from frame to frame.
+FLOOR_CONTRAST_START = 3.0
+FLOOR_CONTRAST_END = 8.0
 SHADOW_COLOR = hex_rgb("#23272e")
 SHADOW_OPACITY = 0.5
 SHADOW_FALLOFF = 0.35        # metres of height over which a shadow fades to 1/e
