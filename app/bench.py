@@ -55,7 +55,12 @@ def remove_download_leftovers(since: float) -> int:
     return removed
 
 
-def run(model: str | None, steps: int, sampler: str, bf16: bool, threads: int | None) -> dict:
+CFG = 7.5
+
+
+def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads: int | None) -> dict:
+    """steps=None: the sampler's default (salad.pipeline.DEFAULT_STEPS: 50 for ddim and dpm, 4 for
+    the consistency student)."""
     from gradio_client import Client
 
     from .server import create_app, launch
@@ -68,14 +73,20 @@ def run(model: str | None, steps: int, sampler: str, bf16: bool, threads: int | 
         if studio_app.studio is None:
             raise SystemExit(f"the studio could not load a model: {studio_app.error}")
         try:
+            # the pipeline's own check: the default steps, and a clear refusal of a student the model lacks
+            steps, _, sampler, _ = studio_app.studio.pipe.check_sampling(steps, CFG, sampler)
+        except ValueError as exc:
+            studio_app.close()
+            raise SystemExit(f"cannot benchmark the {sampler} sampler: {exc}") from None
+        try:
             client = Client(launch(studio_app, settings, block=False), verbose=False, download_files=tmp)
 
             def generate(prompt: str, seed: int):
-                return client.predict(prompt, True, 4.0, seed, steps, 7.5, sampler, api_name="/generate")
+                return client.predict(prompt, True, 4.0, seed, steps, CFG, sampler, api_name="/generate")
 
             def edit(mode: str, target: str, mirror: str, seed: int):
                 return client.predict(PROMPTS[0], mode, target, None, "", 2.0, mirror, 0.2, True, 4.0, seed, steps,
-                                      7.5, sampler, api_name="/edit")
+                                      CFG, sampler, api_name="/edit")
 
             generate("a person walks", 99)          # warm-up: text encoder, kernels, renderer
             gen = [_timed(lambda p=p: generate(p, 0)) for p in PROMPTS]
@@ -107,8 +118,10 @@ def format_table(report: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m app.bench", description=__doc__.splitlines()[0])
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--sampler", choices=("ddim", "dpm"), default="ddim")
+    p.add_argument("--steps", type=int, default=None,
+                   help="sampling steps (default: the sampler's, 50 for ddim and dpm, 4 for consistency)")
+    p.add_argument("--sampler", choices=("ddim", "dpm", "consistency"), default="ddim",
+                   help="consistency: the model's distilled student")
     p.add_argument("--bf16", action="store_true", help="bf16 autocast (the studio's default is fp32)")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--out", type=Path, default=None, help="write the measurements as JSON here")

@@ -7,7 +7,7 @@ import signal
 import sys
 from pathlib import Path
 
-from .settings import Settings, default_clips, default_host, default_port
+from .settings import DEFAULT_SAMPLER, STUDIO_SAMPLERS, Settings, default_clips, default_host, default_port
 
 
 def parse_args(argv: list[str] | None = None) -> Settings:
@@ -31,6 +31,9 @@ def parse_args(argv: list[str] | None = None) -> Settings:
                    help="a dataset build (HumanML3D layout, from `salad data build`) whose test clips the Real "
                         "motion tab offers (default: data/bandai-hml when it has been built)")
     p.add_argument("--no-clips", action="store_true", help="offer no test clips in the Real motion tab")
+    p.add_argument("--sampler", choices=STUDIO_SAMPLERS, default=DEFAULT_SAMPLER,
+                   help="the panels' default sampler (default ddim: the 50-step teacher); consistency is the "
+                        "distilled student (4 steps), used when the model has one and ddim otherwise")
     a = p.parse_args(argv)
     if a.no_clips and a.clips is not None:
         p.error("--clips and --no-clips exclude each other")
@@ -38,7 +41,7 @@ def parse_args(argv: list[str] | None = None) -> Settings:
     try:
         return Settings(model=a.model, host=a.host, port=a.port, concurrency=a.concurrency, threads=a.threads,
                         bf16=a.bf16, tmp_dir=a.tmp_dir, session_ttl_s=a.session_ttl,
-                        control_examples=a.control_examples, clips=clips)
+                        control_examples=a.control_examples, clips=clips, sampler=a.sampler)
     except ValueError as exc:
         p.error(str(exc))
 

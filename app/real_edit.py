@@ -33,10 +33,13 @@ def file_stem(req: RealEditRequest) -> str:
     return f"{slug(_without_type(req.input_name), 32) or 'motion'}_{req.mode}"
 
 
-def _stages(progress: StageProgress, steps: int):
-    """edit_real reports (done, 2 * steps): the inversion first, then the edit."""
+def _stages(progress: StageProgress, steps: int, sampler: str = "ddim"):
+    """edit_real reports (done, 2 * steps): the inversion first, then the edit; with the student
+    (no inversion) (done, steps) of the edit alone."""
     def report(done: int, total: int) -> None:
-        if done < steps:
+        if sampler == "consistency":
+            progress("editing", done, steps)
+        elif done < steps:
             progress("inverting", done, steps)
         else:
             progress("editing", done - steps, steps)
@@ -50,8 +53,9 @@ def _input_label(name: str, limit: int = 32) -> str:
 
 def edit_real(studio: Studio, session: Session, req: RealEditRequest, motion: RealInput,
               progress: StageProgress = quiet) -> Result:
-    """Invert and edit `motion` (under the model lock), save the edited motion (BVH, NPY joints
-    and features) and render input, reconstruction and edit side by side."""
+    """Invert and edit `motion` (under the model lock), or edit it with the distilled student
+    (req.sampler "consistency", no inversion), save the edited motion (BVH, NPY joints and
+    features) and render input, reconstruction and edit side by side."""
     from salad.render import render_side_by_side
 
     reused = session.reuse("real", req)
@@ -59,10 +63,16 @@ def edit_real(studio: Studio, session: Session, req: RealEditRequest, motion: Re
         return reused
     folder = session.new_folder()
     try:
+        if req.sampler == "consistency":    # the student edits the encoded motion: no inversion applies
+            how = dict(sampler="consistency", seed=req.seed)
+        else:
+            how = dict(sampler="ddim", inversion=req.inversion)
         res, timings = studio.sample_locked(req.steps, progress, lambda _report: studio.pipe.edit_real(
-            motion.motion, req.source, steps=req.steps, cfg=req.cfg, spec=req.spec, inversion=req.inversion,
-            trim=True, progress=_stages(progress, req.steps), foot_lock=req.foot_lock))
-        timings.update(inversion_s=float(res.params["inversion_seconds"]), edit_s=float(res.params["edit_seconds"]))
+            motion.motion, req.source, steps=req.steps, cfg=req.cfg, spec=req.spec, trim=True,
+            progress=_stages(progress, req.steps, req.sampler), foot_lock=req.foot_lock, **how))
+        timings["edit_s"] = float(res.params["edit_seconds"])
+        if "inversion_seconds" in res.params:
+            timings["inversion_s"] = float(res.params["inversion_seconds"])
         stem, edited = file_stem(req), res.edited
         saved = file_writer.submit(save_motion, edited, folder, f"{stem}_edited")
         # the input as it came, cut to the frames that were edited

@@ -72,7 +72,7 @@ def create_app(settings: Settings, pipe=None) -> StudioApp:
             pipe, error = _load(settings)
         if pipe is None:
             return StudioApp(build_error_page(error), workspace, None, error)
-        studio = Studio(pipe, workspace, settings.control_examples)
+        studio = Studio(pipe, workspace, settings.control_examples, sampler=settings.sampler)
         demo = build_studio(studio, settings)
         demo.queue(default_concurrency_limit=settings.concurrency, max_size=settings.queue_size)
         return StudioApp(demo, workspace, studio)

@@ -14,7 +14,9 @@ DEFAULT_PORT = 7860
 # Input limits. The pipeline accepts wider ranges; the studio keeps requests within what a
 # 2-core CPU answers in reasonable time.
 MAX_STEPS = 200
-DEFAULT_STEPS = 50
+DEFAULT_STEPS = 50          # the teacher's (ddim, dpm); salad.pipeline.DEFAULT_STEPS has every sampler's
+DEFAULT_SAMPLER = "ddim"
+STUDIO_SAMPLERS = ("ddim", "dpm", "consistency")   # consistency: the distilled student, when the model has one
 MAX_CFG = 15.0
 DEFAULT_CFG = 7.5
 MAX_SEED = 2**31 - 1
@@ -54,6 +56,7 @@ class Settings:
     bf16: bool = False             # measured: fp32 is faster for the studio's one-motion requests
     control_examples: Path | None = None   # a folder of MoLA-style control .npy files offered in the Control tab
     clips: Path | None = None       # a dataset build (HumanML3D layout) whose test clips the Real motion tab offers
+    sampler: str = DEFAULT_SAMPLER  # the panels' default sampler (ddim when "consistency" but the model has no student)
 
     def __post_init__(self):
         if not 1 <= self.port <= 65535:
@@ -64,6 +67,8 @@ class Settings:
             raise ValueError(f"queue size must be positive, got {self.queue_size}")
         if self.session_ttl_s <= 0 or self.prune_every_s <= 0:
             raise ValueError("session ttl and prune interval must be positive")
+        if self.sampler not in STUDIO_SAMPLERS:
+            raise ValueError(f"sampler must be one of {', '.join(STUDIO_SAMPLERS)}, got {self.sampler!r}")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be positive, got {self.threads}")
         if self.control_examples is not None and not Path(self.control_examples).is_dir():

@@ -4,6 +4,7 @@ attention modulation, guide one with control targets; save and render the result
 picture through salad.render."""
 from __future__ import annotations
 
+import logging
 import re
 import threading
 import time
@@ -22,6 +23,7 @@ from .validation import AttentionRequest, ControlRequest, EditRequest, GenerateR
 from .workspace import Workspace
 from salad.files import atomic_write
 
+log = logging.getLogger("salad.studio")
 StageProgress = Callable[[str, int, int], None]   # (stage, done, total)
 # Words an edit may add or swap that carry no motion of their own ("a" -> "an" before an adjective).
 FUNCTION_WORDS = frozenset("a an the their his her its and or with to of in on at while as".split())
@@ -76,13 +78,27 @@ def word_tint(att_word: np.ndarray) -> np.ndarray:
     return np.clip(per_joint / top, 0.0, 1.0) if top > 0 else np.zeros_like(per_joint)
 
 
+def offered_samplers(pipe) -> tuple[str, ...]:
+    """The samplers the studio offers over `pipe`: the teacher's, and the distilled student's
+    ("consistency") when the model has one."""
+    return ("ddim", "dpm") + (("consistency",) if getattr(pipe, "student", None) is not None else ())
+
+
 class Studio:
     """Generation and attention views over one loaded pipeline, for many sessions."""
 
-    def __init__(self, pipe, workspace: Workspace, control_examples: Path | None = None):
+    def __init__(self, pipe, workspace: Workspace, control_examples: Path | None = None, sampler: str = "ddim"):
         self.pipe = pipe
         self.workspace = workspace
         self.control_examples = control_examples      # a folder of control .npy files, or None
+        self.samplers = offered_samplers(pipe)
+        if sampler == "consistency" and sampler not in self.samplers:
+            log.warning("the consistency sampler was asked for but %s has no consistency student (a consistency/ "
+                        "checkpoint); the panels default to ddim", pipe.source or "the model")
+            sampler = "ddim"
+        elif sampler not in self.samplers:
+            raise ValueError(f"sampler must be one of {', '.join(self.samplers)}, got {sampler!r}")
+        self.default_sampler = sampler                # what the panels start with
         # Sampling swaps an attention controller into the shared denoiser, so only one
         # sampling runs at a time; rendering (its own lock) overlaps with the next sampling.
         self._model_lock = threading.Lock()
@@ -327,7 +343,7 @@ class Studio:
         folder = session.new_folder()
         motion, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.control(
             req.prompt, signal=signal, seed=req.seed, strength=req.strength, steps=req.steps, cfg=req.cfg,
-            progress=report, foot_lock=req.foot_lock))
+            sampler=req.sampler, progress=report, foot_lock=req.foot_lock))
         n = motion.frames
         stem = file_stem(req)
         saved = file_writer.submit(save_motion, motion, folder, stem)

@@ -252,6 +252,19 @@ class ControlRequest:
     steps: int
     cfg: float
     foot_lock: bool = True
+    sampler: str = "ddim"           # ddim, or consistency (the distilled student)
+
+
+GUIDED_SAMPLERS = ("ddim", "consistency")     # what guided control and real-motion edits sample with
+
+
+def _guided_sampler(what: str, sampler) -> str:
+    """Control and real-motion edits take ddim or the student; None is ddim (what a client that
+    predates the choice sends)."""
+    sampler = "ddim" if sampler is None else sampler
+    if sampler == "dpm":
+        raise ValueError(f"{what} samples with ddim or consistency (the distilled student), not dpm")
+    return _choice("sampler", sampler, GUIDED_SAMPLERS)
 
 
 def control_signal(pipe, task, preset, seconds, speed, upload, example, keyframes, *, base=None,
@@ -291,15 +304,17 @@ def control_signal(pipe, task, preset, seconds, speed, upload, example, keyframe
 
 
 def parse_control(pipe, prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed,
-                  steps, cfg, foot_lock=True, **where):
+                  steps, cfg, foot_lock=True, sampler="ddim", **where):
     """Validate the Control panel and build its signal -> (ControlRequest, ControlSignal);
-    `where` are control_signal's keyword arguments."""
+    `where` are control_signal's keyword arguments. sampler: ddim, or consistency when the
+    model has a distilled student."""
     text = check_text(pipe, prompt)
+    sampler = _guided_sampler("guided control", sampler)
     signal, detail, base_id = control_signal(pipe, task, preset, seconds, speed, upload, example, keyframes, **where)
-    seed, n_steps, scale, _ = _sampling(pipe, seed, steps, cfg, "ddim")
+    seed, n_steps, scale, sampler = _sampling(pipe, seed, steps, cfg, sampler)
     req = ControlRequest(prompt=text, task=task, detail=detail, base=base_id,
                          strength=_number("strength", strength, 0.0, MAX_STRENGTH), seed=seed, steps=n_steps, cfg=scale,
-                         foot_lock=_flag("foot lock", foot_lock))
+                         foot_lock=_flag("foot lock", foot_lock), sampler=sampler)
     return req, signal
 
 
@@ -317,20 +332,26 @@ class RealEditRequest(_Edit):
     reweight: tuple[tuple[str, float], ...]
     mirror: str | None
     self_inject: float
-    inversion: str                  # a method of salad.diffusion.inversion
+    inversion: str | None           # a method of salad.diffusion.inversion; None with the student, which needs none
     steps: int
     cfg: float
     foot_lock: bool = True
+    sampler: str = "ddim"           # ddim (after the inversion), or consistency: the student edits the encoded motion
+    seed: int = 0                   # the student's noise; 0 with ddim, whose inversion is deterministic
 
 
 def parse_real_edit(pipe, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion,
-                    steps, cfg, foot_lock=True, *, upload_root: Path, clips=None) -> tuple[RealEditRequest, RealInput]:
+                    steps, cfg, foot_lock=True, sampler="ddim", seed=0, *, upload_root: Path,
+                    clips=None) -> tuple[RealEditRequest, RealInput]:
     """Validate the Real motion panel -> (RealEditRequest, app.real_input.RealInput). The motion is
     an upload (under `upload_root`) or a test clip of `clips` (an app.real_input.ClipLibrary),
     never both; the edit is checked as the Edit panel's, with the edit's default τ and
-    self-attention injection, and sampled with DDIM as the inversion requires."""
+    self-attention injection, and sampled with DDIM as the inversion requires, or with the
+    distilled student (sampler "consistency"), which needs no inversion: the inversion choice is
+    then ignored and `seed` draws its noise."""
     from salad.diffusion.inversion import METHODS
 
+    sampler = _guided_sampler("a real-motion edit", sampler)
     up = upload_path(upload, upload_root)
     picked = clip not in (None, "", "none")
     if up is not None and picked:
@@ -345,10 +366,12 @@ def parse_real_edit(pipe, upload, clip, source, mode, target, reweight_word, rew
     else:
         raise ValueError("upload a motion (.bvh, or .npy joints or features)"
                          + (" or pick a test clip" if clips is not None else ""))
-    method = _choice("inversion", inversion, METHODS)
+    student = sampler == "consistency"
+    method = None if student else _choice("inversion", inversion, METHODS)
     ed = parse_edit(pipe, source, mode, target, None, reweight_word, reweight_scale, mirror, DEFAULT_SELF_INJECT,
-                    True, None, 0, steps, cfg, "ddim", foot_lock)
+                    True, None, seed if student else 0, steps, cfg, sampler, foot_lock)
     req = RealEditRequest(input_name=motion.name, input_kind=motion.kind, input_digest=digest, source=ed.source, target=ed.target,
                           mode=ed.mode, tau=ed.tau, reweight=ed.reweight, mirror=ed.mirror, self_inject=ed.self_inject,
-                          inversion=method, steps=ed.steps, cfg=ed.cfg, foot_lock=ed.foot_lock)
+                          inversion=method, steps=ed.steps, cfg=ed.cfg, foot_lock=ed.foot_lock, sampler=ed.sampler,
+                          seed=ed.seed)
     return req, motion

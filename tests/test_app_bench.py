@@ -28,3 +28,18 @@ def test_download_leftovers_are_removed_only_when_empty_recent_and_named_like_th
     os.utime(old, (started - 3600, started - 3600))
     assert remove_download_leftovers(started) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([full.name, old.name, other.name])
+
+
+def test_steps_default_to_the_samplers_and_a_missing_student_is_refused(tiny_model, monkeypatch):
+    import pytest
+
+    import app.bench as bench
+
+    seen = []
+    monkeypatch.setattr(bench, "run", lambda *args: seen.append(args) or {})
+    monkeypatch.setattr(bench, "format_table", lambda report: "")
+    assert bench.main(["--sampler", "consistency"]) == 0
+    assert seen[-1][1:3] == (None, "consistency"), "steps left to the pipeline: the sampler's default"
+    monkeypatch.undo()
+    with pytest.raises(SystemExit, match="cannot benchmark the consistency sampler: .*has no consistency student"):
+        run(str(tiny_model), steps=None, sampler="consistency", bf16=False, threads=1)

@@ -12,10 +12,13 @@ from salad.pipeline import MAX_PROMPT_CHARS, MIN_AUTO_FRAMES
 from ..controls import PRESETS, TASKS, preset_signal
 from ..figures import control_top_view
 from ..settings import (
-    DEFAULT_CFG, DEFAULT_PATH_SPEED, DEFAULT_SECONDS, DEFAULT_STEPS, DEFAULT_STRENGTH, MAX_CFG, MAX_PATH_SPEED,
-    MAX_SEED, MAX_STEPS, MAX_STRENGTH, MAX_UPLOAD_BYTES, SECONDS_STEP,
+    DEFAULT_CFG, DEFAULT_PATH_SPEED, DEFAULT_SECONDS, DEFAULT_STRENGTH, MAX_CFG, MAX_PATH_SPEED, MAX_SEED,
+    MAX_STRENGTH, MAX_UPLOAD_BYTES, SECONDS_STEP,
 )
-from .generate_panel import CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox
+from .generate_panel import (
+    CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox, guided_sampler,
+    steps_slider,
+)
 
 INTRO = ("Generate a motion that also meets joint position targets, by guiding the sampling "
          "(no retraining). Targets are in metres, Y up, the character starting at the origin facing +Z "
@@ -52,6 +55,7 @@ class ControlPanel:
     steps: gr.Slider
     cfg: gr.Slider
     foot_lock: gr.Checkbox
+    sampler: gr.Radio
     button: gr.Button
     preview: gr.Plot
     video: gr.Video
@@ -63,15 +67,18 @@ class ControlPanel:
     @property
     def inputs(self) -> list:
         return [self.prompt, self.task, self.preset, self.seconds, self.speed, self.upload, self.example,
-                self.keyframes, self.strength, self.seed, self.steps, self.cfg, self.foot_lock]
+                self.keyframes, self.strength, self.seed, self.steps, self.cfg, self.foot_lock, self.sampler]
 
     @property
     def path_inputs(self) -> list:
         return [self.task, self.preset, self.seconds, self.speed]
 
 
-def build_control_panel(max_seconds: float, examples: list[str]) -> ControlPanel:
-    longest = max(MIN_SECONDS, float(max_seconds))
+def build_control_panel(pipe, examples: list[str], samplers=("ddim", "dpm"), sampler: str = "ddim") -> ControlPanel:
+    """`samplers`: those offered (app.studio.offered_samplers), `sampler` the studio's default; the
+    guidance samples with DDIM or, when the model has one, the distilled student."""
+    longest = max(MIN_SECONDS, float(pipe.max_seconds))
+    choices, sampler, with_student = guided_sampler(samplers, sampler)
     gr.Markdown(INTRO)
     with gr.Row(equal_height=False):
         with gr.Column(scale=2, min_width=CONTROLS_MIN_WIDTH):
@@ -102,8 +109,10 @@ def build_control_panel(max_seconds: float, examples: list[str]) -> ControlPanel
                                  elem_id="control-strength")
             with gr.Accordion("Sampling", open=False):
                 seed = gr.Number(value=0, precision=0, minimum=0, maximum=MAX_SEED, label="Seed")
-                steps = gr.Slider(1, MAX_STEPS, value=DEFAULT_STEPS, step=1, label="Diffusion steps (DDIM)",
-                                  elem_id="control-steps")
+                sampler_radio = gr.Radio(choices, value=sampler, label="Sampler", visible=with_student,
+                                         elem_id="control-sampler")
+                steps = steps_slider(sampler, "Diffusion steps" if with_student else "Diffusion steps (DDIM)",
+                                     elem_id="control-steps")
                 cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)")
                 foot_lock = foot_lock_checkbox("control-foot-lock")
             button = gr.Button("Generate with control", variant="primary", elem_id="control-button")
@@ -120,5 +129,5 @@ def build_control_panel(max_seconds: float, examples: list[str]) -> ControlPanel
             downloads = gr.File(label="Downloads: MP4, BVH, NPY joints and features, NPZ, control signal (NPZ)",
                                 file_count="multiple", interactive=False, elem_id="control-downloads")
     return ControlPanel(prompt, task, path_group, preset, seconds, speed, upload_group, upload, example, upload_help,
-                        keyframes, strength, seed, steps, cfg, foot_lock, button, preview, video, top_view, summary,
-                        downloads, bvh_units)
+                        keyframes, strength, seed, steps, cfg, foot_lock, sampler_radio, button, preview, video,
+                        top_view, summary, downloads, bvh_units)

@@ -10,10 +10,13 @@ from salad.models.text import split_words
 from salad.pipeline import MAX_PROMPT_CHARS
 
 from ..settings import (
-    DEFAULT_CFG, DEFAULT_REWEIGHT, DEFAULT_SECONDS, DEFAULT_SELF_INJECT, DEFAULT_STEPS, DEFAULT_TAU, MAX_CFG,
-    MAX_REWEIGHT, MAX_SEED, MAX_STEPS, SECONDS_STEP,
+    DEFAULT_CFG, DEFAULT_REWEIGHT, DEFAULT_SECONDS, DEFAULT_SELF_INJECT, DEFAULT_TAU, MAX_CFG, MAX_REWEIGHT, MAX_SEED,
+    SECONDS_STEP,
 )
-from .generate_panel import CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox
+from .generate_panel import (
+    CONTROLS_MIN_WIDTH, MIN_SECONDS, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox, sampler_choices,
+    sampler_info, steps_slider,
+)
 
 INTRO = ("Edit a motion without retraining: the source prompt and the edit are sampled together from the same "
          "noise, and the edit changes only the cross-attention between words and body parts.")
@@ -71,8 +74,9 @@ class EditPanel:
                 self.foot_lock]
 
 
-def build_edit_panel(max_seconds: float) -> EditPanel:
-    longest = max(MIN_SECONDS, float(max_seconds))
+def build_edit_panel(pipe, samplers=("ddim", "dpm"), sampler: str = "ddim") -> EditPanel:
+    """`samplers`: those offered (app.studio.offered_samplers), `sampler` the default."""
+    longest = max(MIN_SECONDS, float(pipe.max_seconds))
     gr.Markdown(INTRO)
     with gr.Row(equal_height=False):
         with gr.Column(scale=2, min_width=CONTROLS_MIN_WIDTH):
@@ -105,10 +109,10 @@ def build_edit_panel(max_seconds: float) -> EditPanel:
                     seconds = gr.Slider(MIN_SECONDS, longest, value=min(DEFAULT_SECONDS, longest), step=SECONDS_STEP,
                                         label="Seconds", interactive=False, scale=2, elem_id="edit-seconds")
                 seed = gr.Number(value=0, precision=0, minimum=0, maximum=MAX_SEED, label="Seed", elem_id="edit-seed")
-                steps = gr.Slider(1, MAX_STEPS, value=DEFAULT_STEPS, step=1, label="Diffusion steps",
-                                  elem_id="edit-steps")
+                sampler_radio = gr.Radio(sampler_choices(samplers), value=sampler, label="Sampler",
+                                         info=sampler_info(pipe, samplers), elem_id="edit-sampler")
+                steps = steps_slider(sampler, elem_id="edit-steps")
                 cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)")
-                sampler = gr.Radio(["ddim", "dpm"], value="ddim", label="Sampler")
                 foot_lock = foot_lock_checkbox("edit-foot-lock")
             button = gr.Button("Edit", variant="primary", elem_id="edit-button")
             gr.Examples(examples=EXAMPLE_EDITS, inputs=[source, mode, target], label="Example edits",
@@ -132,5 +136,5 @@ def build_edit_panel(max_seconds: float) -> EditPanel:
                                       "attention maps (NPZ, PNG)", file_count="multiple", interactive=False,
                                 elem_id="edit-downloads")
     return EditPanel(source, mode, mode_help, target, tau, reweight_word, reweight_scale, mirror, self_inject,
-                     auto_length, seconds, seed, steps, cfg, sampler, foot_lock, button, video, summary, word,
+                     auto_length, seconds, seed, steps, cfg, sampler_radio, foot_lock, button, video, summary, word,
                      source_heatmap, edited_heatmap, downloads, bvh_units, files_status)

@@ -5,11 +5,12 @@ from dataclasses import dataclass
 
 import gradio as gr
 
+from salad.diffusion.schedule import CONSISTENCY_GRID
 from salad.motion.representation import FPS
-from salad.pipeline import MAX_PROMPT_CHARS, MIN_AUTO_FRAMES
+from salad.pipeline import DEFAULT_STEPS as SAMPLER_STEPS, MAX_PROMPT_CHARS, MIN_AUTO_FRAMES
 
 from ..examples import EXAMPLE_PROMPTS
-from ..settings import DEFAULT_CFG, DEFAULT_SECONDS, DEFAULT_STEPS, MAX_CFG, MAX_SEED, MAX_STEPS, SECONDS_STEP
+from ..settings import DEFAULT_CFG, DEFAULT_SECONDS, MAX_CFG, MAX_SEED, MAX_STEPS, SECONDS_STEP
 
 MIN_SECONDS = MIN_AUTO_FRAMES / FPS    # the pipeline's shortest motion
 # Minimum widths (px) at which the controls and the results columns sit side by side: together more
@@ -25,6 +26,56 @@ FOOT_LOCK_INFO = "planted feet stay put and the legs are re-solved by IK; off sh
 def foot_lock_checkbox(elem_id: str) -> gr.Checkbox:
     """The foot clean-up switch every tab that samples motions has (on, as in the library)."""
     return gr.Checkbox(value=True, label=FOOT_LOCK_LABEL, info=FOOT_LOCK_INFO, elem_id=elem_id)
+
+
+# The sampler choices: with a distilled student, the fast student and the 50-step teacher as the quality choice.
+FAST_LABEL = f"fast: distilled student, {SAMPLER_STEPS['consistency']} steps"
+QUALITY_LABEL = f"quality: DDIM, {SAMPLER_STEPS['ddim']} steps"
+DPM_LABEL = "DPM-Solver++"
+DPM_INFO = "DPM-Solver++: fewer steps for a close result (30 steps: 14 mm from the 250-step solution, DDIM-50: 11 mm)"
+
+
+def sampler_choices(samplers) -> list[tuple[str, str]]:
+    """(label, sampler) of the offered samplers, the student first; plain names without a student."""
+    if "consistency" not in samplers:
+        return [(label, s) for label, s in (("DDIM", "ddim"), (DPM_LABEL, "dpm")) if s in samplers]
+    return [(label, s) for label, s in ((FAST_LABEL, "consistency"), (QUALITY_LABEL, "ddim"), (DPM_LABEL, "dpm"))
+            if s in samplers]
+
+
+def sampler_info(pipe, samplers) -> str:
+    """What the sampler radio says under its choices."""
+    if "consistency" not in samplers:
+        return DPM_INFO if "dpm" in samplers else ""
+    lo, hi = pipe.guidance_range
+    return (f"fast: the consistency-distilled student (CFG {lo:g} to {hi:g}, at most {CONSISTENCY_GRID} steps); "
+            f"quality: the {SAMPLER_STEPS['ddim']}-step DDIM teacher"
+            + ("; DPM-Solver++: fewer teacher steps for a close result" if "dpm" in samplers else ""))
+
+
+def guided_sampler(samplers, sampler: str) -> tuple[list[tuple[str, str]], str, bool]:
+    """The Control and Real motion tabs' sampler radio (DDIM or the student; no DPM-Solver++):
+    (choices, default, shown). Shown only when the model has a student."""
+    choices = [(QUALITY_LABEL, "ddim")] + ([(FAST_LABEL, "consistency")] if "consistency" in samplers else [])
+    return choices, sampler if sampler == "consistency" and len(choices) > 1 else "ddim", len(choices) > 1
+
+
+def max_steps(sampler: str) -> int:
+    """The steps slider's top for a sampler: the student's grid, or the studio's limit."""
+    return CONSISTENCY_GRID if sampler == "consistency" else MAX_STEPS
+
+
+def steps_slider(sampler: str, label: str = "Diffusion steps", **kwargs) -> gr.Slider:
+    """A steps slider at `sampler`'s default (salad.pipeline.DEFAULT_STEPS)."""
+    return gr.Slider(1, max_steps(sampler), value=SAMPLER_STEPS[sampler], step=1, label=label, **kwargs)
+
+
+def steps_for(sampler, **update) -> gr.Slider:
+    """The steps slider's update when the sampler changes: its default and range, and `update`
+    (unchanged for a value that is not a sampler)."""
+    if sampler not in SAMPLER_STEPS:
+        return gr.Slider()
+    return gr.Slider(value=SAMPLER_STEPS[sampler], maximum=max_steps(sampler), **update)
 
 
 def bvh_units_dropdown(elem_id: str) -> gr.Dropdown:
@@ -58,8 +109,9 @@ class GeneratePanel:
                 self.foot_lock]
 
 
-def build_generate_panel(max_seconds: float) -> GeneratePanel:
-    longest = max(MIN_SECONDS, float(max_seconds))
+def build_generate_panel(pipe, samplers=("ddim", "dpm"), sampler: str = "ddim") -> GeneratePanel:
+    """`samplers`: those offered (app.studio.offered_samplers), `sampler` the default."""
+    longest = max(MIN_SECONDS, float(pipe.max_seconds))
     with gr.Row(equal_height=False):
         with gr.Column(scale=2, min_width=CONTROLS_MIN_WIDTH):
             prompt = gr.Textbox(label="Prompt", lines=2, max_lines=4, max_length=MAX_PROMPT_CHARS,
@@ -74,12 +126,11 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
                                     label="Seconds", interactive=False, scale=2, elem_id="seconds")
             with gr.Accordion("Sampling", open=False):
                 seed = gr.Number(value=0, precision=0, minimum=0, maximum=MAX_SEED, label="Seed", elem_id="seed")
-                steps = gr.Slider(1, MAX_STEPS, value=DEFAULT_STEPS, step=1, label="Diffusion steps")
+                sampler_radio = gr.Radio(sampler_choices(samplers), value=sampler, label="Sampler",
+                                         info=sampler_info(pipe, samplers), elem_id="sampler")
+                steps = steps_slider(sampler, elem_id="steps")
                 cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)",
                                 info="higher follows the text more closely")
-                sampler = gr.Radio(["ddim", "dpm"], value="ddim", label="Sampler",
-                                   info="DPM-Solver++: fewer steps for a close result (30 steps: 14 mm from "
-                                        "the 250-step solution, DDIM-50: 11 mm)")
                 foot_lock = foot_lock_checkbox("foot-lock")
             button = gr.Button("Generate", variant="primary", elem_id="generate-button")
         with gr.Column(scale=3, min_width=RESULTS_MIN_WIDTH):
@@ -98,5 +149,5 @@ def build_generate_panel(max_seconds: float) -> GeneratePanel:
             downloads = gr.File(label="Downloads: MP4 video, BVH, NPY joints, NPY features, "
                                       "NPZ joints + features",
                                 file_count="multiple", interactive=False, elem_id="downloads")
-    return GeneratePanel(prompt, auto_length, seconds, seed, steps, cfg, sampler, foot_lock, button, video,
+    return GeneratePanel(prompt, auto_length, seconds, seed, steps, cfg, sampler_radio, foot_lock, button, video,
                          skeleton, summary, downloads, bvh_units)

@@ -20,7 +20,8 @@ from ..validation import (
 )
 from .edit_panel import MODE_HELP
 from .control_panel import UPLOAD_HELP
-from .real_panel import real_markdown
+from .generate_panel import steps_for
+from .real_panel import real_markdown, sampler_updates
 from .summaries import control_markdown, edit_markdown, summary_markdown
 
 log = logging.getLogger("salad.studio")
@@ -87,6 +88,16 @@ class Handlers:
     @staticmethod
     def length_mode(auto_length):
         return gr.Slider(interactive=not bool(auto_length))
+
+    @staticmethod
+    def sampler_steps(sampler):
+        """The sampler changed: the steps slider goes to its default (salad.pipeline.DEFAULT_STEPS)."""
+        return steps_for(sampler)
+
+    @staticmethod
+    def real_sampler(sampler):
+        """As sampler_steps, for the Real motion tab, whose inversion and seed follow the sampler too."""
+        return sampler_updates(sampler)
 
     def generate(self, prompt, auto_length, seconds, seed, steps, cfg, sampler, foot_lock, state,
                  request: gr.Request, progress=gr.Progress()):
@@ -215,11 +226,11 @@ class Handlers:
         return control_top_view(signal.targets, signal.mask)
 
     def control(self, prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed, steps, cfg,
-                foot_lock, state, request: gr.Request, progress=gr.Progress()):
+                foot_lock, sampler, state, request: gr.Request, progress=gr.Progress()):
         base = state.current if isinstance(state, Session) else None
         self._note_upload(upload, request)
         req, signal = parse_control(self.studio.pipe, prompt, task, preset, seconds, speed, upload, example, keyframes,
-                                    strength, seed, steps, cfg, foot_lock, base=base,
+                                    strength, seed, steps, cfg, foot_lock, sampler, base=base,
                                     upload_root=self.studio.workspace.gradio_cache,
                                     examples_dir=self.studio.control_examples)
         session = self.studio.session(state, request.session_hash)
@@ -251,10 +262,10 @@ class Handlers:
         return ""
 
     def edit_real(self, upload, clip, source, mode, target, reweight_word, reweight_scale, mirror, inversion, steps,
-                  cfg, foot_lock, state, request: gr.Request, progress=gr.Progress()):
+                  cfg, foot_lock, sampler, seed, state, request: gr.Request, progress=gr.Progress()):
         self._note_upload(upload, request)
         req, motion = parse_real_edit(self.studio.pipe, upload, clip, source, mode, target, reweight_word,
-                                      reweight_scale, mirror, inversion, steps, cfg, foot_lock,
+                                      reweight_scale, mirror, inversion, steps, cfg, foot_lock, sampler, seed,
                                       upload_root=self.studio.workspace.gradio_cache, clips=self.clips)
         session = self.studio.session(state, request.session_hash)
         result = real_edit.edit_real(self.studio, session, req, motion, _gr_progress(progress))
@@ -286,7 +297,7 @@ class Handlers:
 
 def guard_all(handlers: Handlers) -> dict:
     """The handlers wrapped by `guarded`, by name."""
-    names = ("length_mode", "generate", "attention", "attention_video", "edit_mode", "edit_words", "edit",
+    names = ("length_mode", "sampler_steps", "real_sampler", "generate", "attention", "attention_video", "edit_mode", "edit_words", "edit",
              "edit_files", "edit_attention", "control_task", "control_preview", "control", "real_mode", "real_clip",
              "real_upload", "edit_real")
     units = {f"bvh_units_{kind}": guarded(handlers.bvh_units(kind)) for kind in ("generate", "edit", "control", "real")}

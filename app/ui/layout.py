@@ -44,6 +44,7 @@ API_NAMES = ("generate", "attention", "attention_video", "attention_refresh", "l
              "edit", "edit_files", "edit_attention", "edit_mode", "edit_words", "edit_length_mode", "load_edit_example",
              "control", "control_task", "control_preview", "control_preview_refresh",
              "edit_real", "real_mode", "real_words", "real_clip", "real_upload",
+             "sampler_steps", "edit_sampler_steps", "control_sampler_steps", "real_sampler",
              "bvh_units", "edit_bvh_units", "control_bvh_units", "real_bvh_units")
 
 
@@ -79,24 +80,28 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
     clips = _clip_library(settings)
     h = guard_all(Handlers(studio, clips))
     ttl = settings.session_ttl_s
+    pipe, samplers, sampler = studio.pipe, studio.samplers, studio.default_sampler
     with gr.Blocks(title=TITLE, delete_cache=(int(settings.prune_every_s), int(ttl))) as demo:
         state = gr.State(None, time_to_live=ttl, delete_callback=_close_session)
         gr.Markdown(header_markdown(studio.pipe))
         with gr.Tabs():
             with gr.Tab("Generate", id="generate", elem_id="generate-tab"):
-                gen = build_generate_panel(studio.pipe.max_seconds)
+                gen = build_generate_panel(pipe, samplers, sampler)
             with gr.Tab("Attention", id="attention", elem_id="attention-tab"):
                 att = build_attention_panel()
             with gr.Tab("Edit", id="edit", elem_id="edit-tab"):
-                ed = build_edit_panel(studio.pipe.max_seconds)
+                ed = build_edit_panel(pipe, samplers, sampler)
             with gr.Tab("Control", id="control", elem_id="control-tab"):
-                ctl = build_control_panel(studio.pipe.max_seconds, list_examples(studio.control_examples))
+                ctl = build_control_panel(pipe, list_examples(studio.control_examples), samplers, sampler)
             with gr.Tab("Real motion", id="real", elem_id="real-tab"):
-                real = build_real_panel(clips.choices() if clips else [])
+                real = build_real_panel(clips.choices() if clips else [], samplers, sampler)
         gr.Markdown(LICENCE_NOTE)
 
         gen.auto_length.input(h["length_mode"], gen.auto_length, gen.seconds, api_name="length_mode",
                               api_visibility="undocumented", queue=False, show_progress="hidden")
+        # a new sampler starts at its own default steps (4 for the student, 50 for the teacher)
+        gen.sampler.change(h["sampler_steps"], gen.sampler, gen.steps, api_name="sampler_steps", preprocess=False,
+                           api_visibility="undocumented", queue=False, show_progress="hidden")
         generated = gr.on(
             [gen.button.click, gen.prompt.submit], h["generate"], inputs=gen.inputs + [state],
             outputs=[state, gen.video, gen.skeleton, gen.summary, gen.downloads, att.word, att.layers,
@@ -144,6 +149,8 @@ def _wire_edit(h: dict, ed, state, settings: Settings) -> None:
           [ed.source, ed.mode, ed.target, ed.reweight_word], ed.reweight_word, api_name="edit_words",
           preprocess=False, **quick)
     ed.auto_length.input(h["length_mode"], ed.auto_length, ed.seconds, api_name="edit_length_mode", **quick)
+    ed.sampler.change(h["sampler_steps"], ed.sampler, ed.steps, api_name="edit_sampler_steps", preprocess=False,
+                      **quick)
     edited = gr.on([ed.button.click], h["edit"], inputs=ed.inputs + [state],
                    outputs=[state, ed.video, ed.summary, ed.word, ed.source_heatmap, ed.edited_heatmap, ed.downloads],
                    api_name="edit", preprocess=False, concurrency_id="model", show_progress_on=[ed.video],
@@ -161,6 +168,8 @@ def _wire_control(h: dict, ctl, generated, state, settings: Settings) -> None:
     quick = dict(queue=False, show_progress="hidden", api_visibility="undocumented")
     ctl.task.change(h["control_task"], ctl.task, [ctl.path_group, ctl.upload_group, ctl.upload_help, ctl.keyframes],
                     api_name="control_task", **quick)
+    ctl.sampler.change(h["sampler_steps"], ctl.sampler, ctl.steps, api_name="control_sampler_steps",
+                       preprocess=False, **quick)
     preview_inputs = [ctl.task, ctl.preset, ctl.seconds, ctl.speed, ctl.upload, ctl.example, ctl.keyframes, state]
     gr.on([ctl.task.change, ctl.preset.change, ctl.seconds.release, ctl.speed.release, ctl.upload.change,
            ctl.example.change, ctl.keyframes.submit, ctl.keyframes.blur],
@@ -180,6 +189,8 @@ def _wire_real(h: dict, real, state, settings: Settings) -> None:
     """The Real motion tab: controls follow the mode as in the Edit tab; a picked test clip fills
     in its caption and replaces an upload (and an upload replaces the clip)."""
     quick = dict(queue=False, show_progress="hidden", api_visibility="undocumented")
+    real.sampler.change(h["real_sampler"], real.sampler, [real.steps, real.inversion, real.seed],
+                        api_name="real_sampler", preprocess=False, **quick)
     real.mode.change(h["real_mode"], [real.mode, real.mirror, real.source, real.target, real.reweight_word],
                      [real.mode_help, real.target, real.mirror, real.reweight_word], api_name="real_mode",
                      preprocess=False, **quick)

@@ -12,12 +12,13 @@ from salad.pipeline import MAX_PROMPT_CHARS
 
 from ..real_edit import edit_difference, reconstruction_error_m
 from ..session import Result
-from ..settings import (
-    DEFAULT_CFG, DEFAULT_REWEIGHT, DEFAULT_STEPS, MAX_CFG, MAX_REWEIGHT, MAX_STEPS, MAX_UPLOAD_BYTES,
-)
+from ..settings import DEFAULT_CFG, DEFAULT_REWEIGHT, MAX_CFG, MAX_REWEIGHT, MAX_SEED, MAX_UPLOAD_BYTES
 from .edit_panel import MIRROR_CHOICES, MODE_HELP, MODES
-from .generate_panel import CONTROLS_MIN_WIDTH, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox
-from .summaries import MIRROR_NAMES, MODE_NAMES, escape_md, foot_lock_line, quoted, warnings_block
+from .generate_panel import (
+    CONTROLS_MIN_WIDTH, RESULTS_MIN_WIDTH, bvh_units_dropdown, foot_lock_checkbox, guided_sampler, steps_for,
+    steps_slider,
+)
+from .summaries import MIRROR_NAMES, MODE_NAMES, escape_md, foot_lock_line, quoted, sampling_text, warnings_block
 
 INTRO = ("Edit a recorded motion by text. Describe the motion as it is (the source prompt): it is encoded and "
          "inverted under that prompt, so that sampling it back gives the motion again, and the edit then changes "
@@ -30,6 +31,9 @@ DEFAULT_MODE = "mirror"
 DEFAULT_SOURCE = "a person waves their left hand"
 INVERSION_NAMES = dict((value, label.split(" (")[0]) for label, value in INVERSIONS)
 KIND_NAMES = {"bvh": "BVH", "joints": "joints", "features": "features", "clip": "test clip"}
+STEPS_INFO = {"ddim": "the inversion and the edit take as many each",
+              "consistency": "the student edits the encoded motion directly: no inversion"}
+SEED_INFO = "the student's noise (an inversion needs none)"
 
 
 @dataclass
@@ -47,6 +51,8 @@ class RealPanel:
     steps: gr.Slider
     cfg: gr.Slider
     foot_lock: gr.Checkbox
+    sampler: gr.Radio
+    seed: gr.Number
     button: gr.Button
     video: gr.Video
     summary: gr.Markdown
@@ -55,12 +61,26 @@ class RealPanel:
 
     @property
     def inputs(self) -> list:
+        # new inputs go last: API clients call the event with positional arguments
         return [self.upload, self.clip, self.source, self.mode, self.target, self.reweight_word, self.reweight_scale,
-                self.mirror, self.inversion, self.steps, self.cfg, self.foot_lock]
+                self.mirror, self.inversion, self.steps, self.cfg, self.foot_lock, self.sampler, self.seed]
 
 
-def build_real_panel(clip_choices: list[tuple[str, str]]) -> RealPanel:
-    """The tab's components; the clip picker only when a dataset build offers clips."""
+def sampler_updates(sampler) -> tuple:
+    """The sampler changed: the steps slider (its default, range and note), the inversion choice
+    (which the student does without) and the seed (which only the student uses)."""
+    if sampler not in STEPS_INFO:
+        return gr.Slider(), gr.Radio(), gr.Number()
+    student = sampler == "consistency"
+    return steps_for(sampler, info=STEPS_INFO[sampler]), gr.Radio(interactive=not student), gr.Number(visible=student)
+
+
+def build_real_panel(clip_choices: list[tuple[str, str]], samplers=("ddim", "dpm"),
+                     sampler: str = "ddim") -> RealPanel:
+    """The tab's components; the clip picker only when a dataset build offers clips, the sampler
+    choice only when the model has a distilled student (`samplers`: app.studio.offered_samplers)."""
+    choices, sampler, with_student = guided_sampler(samplers, sampler)
+    student = sampler == "consistency"
     gr.Markdown(INTRO)
     with gr.Row(equal_height=False):
         with gr.Column(scale=2, min_width=CONTROLS_MIN_WIDTH):
@@ -90,9 +110,14 @@ def build_real_panel(clip_choices: list[tuple[str, str]]) -> RealPanel:
             mirror = gr.Radio(MIRROR_CHOICES, value="all", label="Mirror (also with any other edit)",
                               elem_id="real-mirror")
             with gr.Accordion("Inversion and sampling", open=False):
-                inversion = gr.Radio(INVERSIONS, value="negative", label="Inversion", elem_id="real-inversion")
-                steps = gr.Slider(1, MAX_STEPS, value=DEFAULT_STEPS, step=1, label="Diffusion steps (DDIM)",
-                                  info="the inversion and the edit take as many each", elem_id="real-steps")
+                sampler_radio = gr.Radio(choices, value=sampler, label="Sampler", visible=with_student,
+                                         elem_id="real-sampler")
+                inversion = gr.Radio(INVERSIONS, value="negative", label="Inversion", interactive=not student,
+                                     elem_id="real-inversion")
+                steps = steps_slider(sampler, "Diffusion steps" if with_student else "Diffusion steps (DDIM)",
+                                     info=STEPS_INFO[sampler], elem_id="real-steps")
+                seed = gr.Number(value=0, precision=0, minimum=0, maximum=MAX_SEED, label="Seed", info=SEED_INFO,
+                                 visible=student, elem_id="real-seed")
                 cfg = gr.Slider(0.0, MAX_CFG, value=DEFAULT_CFG, step=0.5, label="Guidance (CFG scale)",
                                 elem_id="real-cfg")
                 foot_lock = foot_lock_checkbox("real-foot-lock")
@@ -106,7 +131,8 @@ def build_real_panel(clip_choices: list[tuple[str, str]]) -> RealPanel:
             downloads = gr.File(label="Downloads: edited BVH, NPY joints and features, side-by-side MP4",
                                 file_count="multiple", interactive=False, elem_id="real-downloads")
     return RealPanel(upload, clip, source, mode, mode_help, target, reweight_word, reweight_scale, mirror,
-                     inversion, steps, cfg, foot_lock, button, video, summary, downloads, bvh_units)
+                     inversion, steps, cfg, foot_lock, sampler_radio, seed, button, video, summary, downloads,
+                     bvh_units)
 
 
 def real_markdown(result: Result) -> str:
@@ -132,12 +158,17 @@ def real_markdown(result: Result) -> str:
     part, change = diff.most_changed
     t = result.timings
     waited = f", waited {t['wait_s']:.1f} s" if t.get("wait_s", 0) > 0.5 else ""
-    return warnings_block(rec, result.motion) + (f"{' · '.join(what)} of {KIND_NAMES[r.input_kind]} {quoted(r.input_name)} described as "
-            f"{quoted(r.source)}: {length}, {INVERSION_NAMES[r.inversion]} inversion, {r.steps} DDIM steps, "
-            f"CFG {r.cfg:g}.  \n"
+    if r.sampler == "consistency":      # the student edits the encoded motion: no inversion ran
+        how = f"no inversion, {sampling_text(r.sampler, r.steps)}, seed {r.seed}"
+        took = f"Edited in {t['edit_s']:.1f} s"
+    else:
+        how = f"{INVERSION_NAMES[r.inversion]} inversion, {sampling_text(r.sampler, r.steps)}"
+        took = f"Inverted in {t['inversion_s']:.1f} s, edited in {t['edit_s']:.1f} s"
+    return warnings_block(rec, result.motion) + (
+            f"{' · '.join(what)} of {KIND_NAMES[r.input_kind]} {quoted(r.input_name)} described as "
+            f"{quoted(r.source)}: {length}, {how}, CFG {r.cfg:g}.  \n"
             f"**Reconstruction error (MPJPE): {100 * reconstruction_error_m(result):.1f} cm** against the input. "
             f"Most changed by the edit: **{escape_md(part)}** ({100 * change:.0f} cm on average, pelvis-relative); "
             f"the pelvis path moved {100 * diff.root_change_m:.0f} cm on average.  \n"
             + foot_lock_line(result.motion)
-            + f"Inverted in {t['inversion_s']:.1f} s, edited in {t['edit_s']:.1f} s, "
-            f"rendered in {t['render_s']:.1f} s{waited}.")
+            + f"{took}, rendered in {t['render_s']:.1f} s{waited}.")

@@ -26,8 +26,16 @@ def _timing(result: Result, sampled: str) -> str:
     return f"{sampled} in {t['sample_s']:.1f} s, rendered in {t['render_s']:.1f} s{waited}."
 
 
+def sampling_text(sampler: str, steps: int) -> str:
+    """The sampler and its steps, as a summary names them: "50 DDIM steps", "4 consistency steps
+    (distilled student)"."""
+    if sampler == "consistency":
+        return f"{steps} consistency step{'s' if steps != 1 else ''} (distilled student)"
+    return f"{steps} {sampler.upper()} step{'s' if steps != 1 else ''}"
+
+
 def _sampling(req, sampler: str | None = None) -> str:
-    return f"seed {req.seed}, {req.steps} {(sampler or 'ddim').upper()} steps, CFG {req.cfg:g}"
+    return f"seed {req.seed}, {sampling_text(sampler or 'ddim', req.steps)}, CFG {req.cfg:g}"
 
 
 def warnings_block(*motions) -> str:
@@ -127,4 +135,4 @@ def control_markdown(result: Result) -> str:
     error = (f"**control error: mean {100 * info['control_mean_error_m']:.1f} cm, "
              f"max {100 * info['control_max_error_m']:.1f} cm**" if "control_mean_error_m" in info else "")
     return warnings_block(m) + (f"{describe_control(result)} · {quoted(r.prompt)} — {m.seconds:.1f} s ({m.frames} frames), "
-            f"strength {r.strength:g}, {_sampling(r)}.  \n{error}  \n" + foot_lock_line(m) + _timing(result, "Sampled"))
+            f"strength {r.strength:g}, {_sampling(r, r.sampler)}.  \n{error}  \n" + foot_lock_line(m) + _timing(result, "Sampled"))
