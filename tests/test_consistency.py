@@ -266,3 +266,44 @@ def test_cli_samples_with_the_student(tiny_student, tiny_dataset, tmp_path, caps
     assert main(["generate", "a person walks forward", "--sampler", "consistency", "--cfg", "20",
                  "--model", str(tiny_student), "-o", str(out)]) == 2
     assert "distilled for cfg" in capsys.readouterr().err
+
+
+def test_a_run_does_not_resume_onto_another_teacher(tiny_model, tiny_dataset, tmp_path, capsys):
+    from salad.cli import main
+
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "vae").symlink_to((tiny_model / "vae").resolve())
+    cfg_d = tmp_path / "d.toml"
+    cfg_d.write_text(f"""vae = "{tiny_model / 'vae'}"
+[data]
+root = "{tiny_dataset}"
+max_frames = 40
+[model]
+latent_dim = 8
+dim = 32
+heads = 4
+ff_dim = 64
+layers = 3
+text_dim = 384
+[optim]
+lr = 1e-3
+warmup_steps = 1
+batch_size = 4
+max_steps = 1
+[run]
+bf16 = false
+checkpoint_every = 1
+""")
+    assert main(["train", "denoiser", "--config", str(cfg_d), "--out-dir", str(tmp_path / "den")]) == 0
+    # the teacher directory keeps its path while its denoiser is replaced by a newer one
+    (other / "denoiser").symlink_to((tiny_model / "denoiser").resolve())
+    run = tmp_path / "run"
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, other, steps=2)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
+    (other / "denoiser").unlink()
+    (other / "denoiser").symlink_to(tmp_path / "den" / "model")
+    consistency_toml(cfg, tiny_dataset, other, steps=3)
+    capsys.readouterr()
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 2
+    assert "differs in ['teacher_sha256']" in capsys.readouterr().err

@@ -140,7 +140,9 @@ class ConsistencyTask:
         return model(batch)
 
     def config_dict(self) -> dict:
-        return to_dict(self.cfg)
+        # the teacher's weights, not only its path: a run resumed after the teacher was replaced
+        # (a newer snapshot in assets/model) must not go on distilling the old one
+        return {**to_dict(self.cfg), "teacher_sha256": self.teacher_doc["files"]["denoiser"]["sha256"]}
 
     def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
         teacher_meta = self.teacher_doc.get("meta", {})
