@@ -60,6 +60,13 @@ class Result:
                 self._cache.popitem(last=False)
         return value
 
+    def peek(self, key: tuple, default: Any = None) -> Any:
+        """The value stored under `key` without making it: `default` when there is none yet (or
+        its file has since disappeared)."""
+        with self._lock:
+            value = self._cache.get(key, default)
+        return default if value is not default and _missing_file(value) else value
+
     def intact(self) -> bool:
         """Whether every file of the result is still on disk."""
         return self.folder.is_dir() and all(p.exists() for p in self.files.values())

@@ -1,11 +1,16 @@
 """What the studio does, without any UI: generate a motion with its attention, edit one by
 attention modulation, guide one with control targets; save and render the results, and build
 (cached) views of them. Every model call goes through the public pipeline API and every
-picture through salad.render."""
+picture through salad.render.
+
+A result's video comes in two renders: a preview without antialiasing (about half the time),
+made with the result and shown at once, and the antialiased MP4, the one among the downloads,
+made on request (`full_video`) and kept on the result."""
 from __future__ import annotations
 
 import logging
 import re
+import shutil
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -30,6 +35,13 @@ FUNCTION_WORDS = frozenset("a an the their his her its and or with to of in on a
 # Motion files (NPY, NPZ, BVH) are written here while the video renders: the video is what
 # the user waits for, and the writes are mostly I/O and NumPy outside the GIL.
 file_writer = ThreadPoolExecutor(max_workers=2, thread_name_prefix="salad-save")
+# The downloads of each kind of result, in the order the page lists them ("mp4": the antialiased
+# video, listed once it is rendered; the preview never is).
+DOWNLOADS = {"generate": ("mp4", "bvh", "npy", "features", "npz"),
+             "control": ("mp4", "bvh", "npy", "features", "npz", "signal"),
+             "real": ("mp4", "bvh", "npy", "features")}
+EDIT_DOWNLOADS = ("edited_bvh", "source_bvh", "edited_npy", "source_npy", "edited_features", "source_features",
+                  "edited_npz", "source_npz")
 
 
 def quiet(stage: str, done: int, total: int) -> None:
@@ -61,6 +73,13 @@ def save_motion(motion, folder: Path, stem: str, prefix: str = "") -> dict[str, 
     files[f"{prefix}features"] = atomic_write(folder / f"{stem}_features.npy",
                                              lambda f: np.save(f, motion.features.astype(np.float32)))
     return files
+
+
+def video_path(result: Result, preview: bool = False) -> Path:
+    """Where a result's video goes: <stem>.mp4 (an edit's <stem>_side-by-side.mp4), or its
+    preview <stem>[_side-by-side]_preview.mp4."""
+    stem = file_stem(result.request) + ("_side-by-side" if result.kind == "edit" else "")
+    return result.folder / f"{stem}{'_preview' if preview else ''}.mp4"
 
 
 def attention_arrays(maps, prefix: str = "") -> dict[str, np.ndarray]:
@@ -129,11 +148,53 @@ class Studio:
         path = render(lambda i, n: progress("rendering", i, n))
         return path, time.perf_counter() - t0
 
-    def generate(self, session: Session, req: GenerateRequest, progress: StageProgress = quiet) -> Result:
-        """Sample, save (NPY joints and features, NPZ, BVH) and render (MP4) one motion; it becomes
-        the session's current one. An identical earlier request of the session is answered from its files."""
-        from salad.render import render_video
+    def _render(self, result: Result, path: Path, antialias: bool, progress: StageProgress) -> Path:
+        """Draw a result's video: a generated motion alone, an edit's source and edited motions
+        side by side, a guided motion with its targets (and a path on the floor)."""
+        from salad.render import render_side_by_side, render_video
 
+        m = result.motion
+        report = lambda i, n: progress("rendering", i, n)   # noqa: E731
+        if result.kind == "edit":
+            return render_side_by_side([result.source.joints, m.joints], ["source", "edited"], path, fps=m.fps,
+                                       progress=report, antialias=antialias)
+        if result.kind == "control":
+            # Free coordinates of a target take the motion's own value, so a pelvis path's markers
+            # ride at pelvis height while its ribbon lies on the floor.
+            sig, n = result.signal, m.frames
+            shown = np.where(sig.mask[:n], sig.targets[:n], m.joints)
+            return render_video(m.joints, path, fps=m.fps, title=m.text, targets=shown,
+                                target_mask=sig.joint_mask()[:n], trajectory=controls.pelvis_path(sig, n),
+                                progress=report, antialias=antialias)
+        if result.kind == "generate":
+            return render_video(m.joints, path, fps=m.fps, title=m.text, progress=report, antialias=antialias)
+        raise ValueError(f"no video is rendered here for a {result.kind} result")
+
+    def _finish(self, session: Session, result: Result, saved: list, progress: StageProgress) -> Result:
+        """Render `result`'s preview while its motion files (`saved`, futures of file dicts) are
+        written, then make it the session's latest of its kind. A failure removes the result's folder."""
+        # Building the plotly figure on another thread meanwhile was measured and gained nothing
+        # (1.16 s vs 1.18 s per generation): the render already keeps both cores busy.
+        started = time.perf_counter()
+        try:
+            preview = self._render(result, video_path(result, preview=True), False, progress)
+            result.timings["render_s"] = time.perf_counter() - started
+            files = {"preview": preview}
+            for future in saved:
+                files |= future.result()
+        except BaseException:
+            for future in saved:
+                future.cancel() or future.exception()   # let the writers finish before the folder goes
+            shutil.rmtree(result.folder, ignore_errors=True)
+            raise
+        result.files = files
+        session.add(result)
+        return result
+
+    def generate(self, session: Session, req: GenerateRequest, progress: StageProgress = quiet) -> Result:
+        """Sample, save (NPY joints and features, NPZ, BVH) and preview (MP4 without antialiasing)
+        one motion; it becomes the session's current one. An identical earlier request of the
+        session is answered from its files."""
         reused = session.reuse("generate", req)
         if reused is not None:
             return reused
@@ -141,14 +202,32 @@ class Studio:
         motion, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.generate(
             req.prompt, seconds=req.seconds, seed=req.seed, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
             return_attention=True, progress=report, foot_lock=req.foot_lock))
-        stem = file_stem(req)
-        saved = file_writer.submit(save_motion, motion, folder, stem)
-        mp4, timings["render_s"] = self.rendered(progress, lambda report: render_video(
-            motion.joints, folder / f"{stem}.mp4", fps=motion.fps, title=motion.text, progress=report))
-        files = {"mp4": mp4} | saved.result()
-        result = Result(req, motion, folder, files, timings)
-        session.add(result)
-        return result
+        saved = file_writer.submit(save_motion, motion, folder, file_stem(req))
+        result = Result(req, motion, folder, {}, timings)
+        return self._finish(session, result, [saved], progress)
+
+    # ------------------------------------------------------------ videos
+    def full_video(self, result: Result, progress: StageProgress = quiet) -> Path:
+        """The result's antialiased MP4 (the downloadable one), rendered on first use and kept:
+        it joins the result's files (and so its downloads) as "mp4"."""
+        if result.kind == "real":          # rendered with the result
+            return result.files["mp4"]
+
+        def make() -> Path:
+            t0 = time.perf_counter()
+            path = self._render(result, video_path(result), True, progress)
+            result.timings["full_render_s"] = time.perf_counter() - t0
+            result.files = result.files | {"mp4": path}     # a new dict: readers never see one change
+            return path
+
+        return result.cached(("full video",), make)
+
+    @staticmethod
+    def shown_video(result: Result) -> Path:
+        """The video to show for a result: its antialiased MP4 once rendered (a request answered
+        from an earlier identical one), else its preview."""
+        full = result.peek(("full video",))
+        return full if full is not None else result.files.get("preview", result.files.get("mp4"))
 
     def skeleton_figure(self, result: Result):
         from salad.render import skeleton_figure
@@ -212,9 +291,7 @@ class Studio:
     # ------------------------------------------------------------ editing
     def edit(self, session: Session, req: EditRequest, progress: StageProgress = quiet) -> Result:
         """Run one edit (source and edited branches in one batched sampling), save both motions
-        and render them side by side; it becomes the session's latest edit."""
-        from salad.render import render_side_by_side
-
+        and preview them side by side; it becomes the session's latest edit."""
         reused = session.reuse("edit", req)
         if reused is not None:
             return reused
@@ -226,13 +303,8 @@ class Studio:
         saved = [file_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
                  file_writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
         # An unchanged source (same prompt, seed, length, sampling) reuses its rendered panel.
-        mp4, timings["render_s"] = self.rendered(progress, lambda report: render_side_by_side(
-            [res.source.joints, res.edited.joints], ["source", "edited"], folder / f"{stem}_side-by-side.mp4",
-            fps=res.edited.fps, progress=report))
-        files = {"mp4": mp4} | saved[0].result() | saved[1].result()
-        result = Result(req, res.edited, folder, files, timings, kind="edit", source=res.source)
-        session.add(result)
-        return result
+        result = Result(req, res.edited, folder, {}, timings, kind="edit", source=res.source)
+        return self._finish(session, result, saved, progress)
 
     def edit_word_map(self, result: Result) -> list[int]:
         """For each word of the edited prompt, the source word it corresponds to, or -1 (added)."""
@@ -284,9 +356,9 @@ class Studio:
 
         return result.cached(("edit heatmaps", word), make)
 
-    def edit_downloads(self, result: Result, progress: StageProgress = quiet) -> list[Path]:
-        """Every file of an edit: the side-by-side MP4, the edited motion's own MP4, BVH, NPY
-        joints and features, NPZ per motion, and both attention maps as NPZ and PNG."""
+    def edit_extras(self, result: Result, progress: StageProgress = quiet) -> list[Path]:
+        """An edit's files beyond its motions: the edited motion's own MP4 and both attention
+        maps as NPZ and PNG (made on first use)."""
         from salad.render import attention_png, render_video
 
         def make() -> list[Path]:
@@ -301,21 +373,29 @@ class Studio:
             pngs = [attention_png(agg, words, folder / f"{stem}_attention_{which}.png", fps=edited.fps)
                     for which, agg, words in (("source", src_agg, src.attention.words),
                                               ("edited", edited_agg, edited.attention.words))]
-            order = ("mp4", "edited_bvh", "source_bvh", "edited_npy", "source_npy", "edited_features",
-                     "source_features", "edited_npz", "source_npz")
-            return [result.files["mp4"], single] + [result.files[k] for k in order[1:]] + [npz, *map(Path, pngs)]
+            return [single, npz, *map(Path, pngs)]
 
-        return result.cached(("edit downloads",), make)
+        return result.cached(("edit extras",), make)
+
+    def edit_downloads(self, result: Result, progress: StageProgress = quiet) -> list[Path]:
+        """Every file of an edit, made where missing: the side-by-side MP4, the edited motion's
+        own MP4, BVH, NPY joints and features, NPZ per motion, and both attention maps as NPZ and PNG."""
+        self.full_video(result, progress)
+        self.edit_extras(result, progress)
+        return self.downloads(result)
 
     # ------------------------------------------------------------ downloads
-    def downloads(self, result: Result, progress: StageProgress = quiet) -> list[Path]:
-        """Every download of a result, in the order the page lists them."""
+    def downloads(self, result: Result) -> list[Path]:
+        """The downloads of a result made so far, in the order the page lists them: the
+        antialiased MP4 once it is rendered (never the preview), the motion files, and an edit's
+        extras (edit_extras) once they are made. Nothing is rendered here."""
+        files = result.files
         if result.kind == "edit":
-            return self.edit_downloads(result, progress)
-        keys = {"generate": ("mp4", "bvh", "npy", "features", "npz"),
-                "control": ("mp4", "bvh", "npy", "features", "npz", "signal"),
-                "real": ("mp4", "bvh", "npy", "features")}[result.kind]
-        return [result.files[k] for k in keys]
+            extras = result.peek(("edit extras",), [])
+            listed = [files.get("mp4")] + extras[:1] + [files.get(k) for k in EDIT_DOWNLOADS] + extras[1:]
+        else:
+            listed = [files.get(k) for k in DOWNLOADS[result.kind]]
+        return [p for p in listed if p is not None]
 
     @staticmethod
     def in_bvh_units(result: Result, paths: list[Path], units: str) -> list[Path]:
@@ -333,10 +413,8 @@ class Studio:
 
     # ------------------------------------------------------------ guided control
     def control(self, session: Session, req: ControlRequest, signal, progress: StageProgress = quiet) -> Result:
-        """Sample a motion guided by `signal`, save it with its signal, and render it with the
+        """Sample a motion guided by `signal`, save it with its signal, and preview it with the
         targets (and a path on the floor) drawn; it becomes the session's latest control result."""
-        from salad.render import render_video
-
         reused = session.reuse("control", req)
         if reused is not None:
             return reused
@@ -344,21 +422,12 @@ class Studio:
         motion, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.control(
             req.prompt, signal=signal, seed=req.seed, strength=req.strength, steps=req.steps, cfg=req.cfg,
             sampler=req.sampler, progress=report, foot_lock=req.foot_lock))
-        n = motion.frames
         stem = file_stem(req)
         saved = file_writer.submit(save_motion, motion, folder, stem)
-        signal_file = file_writer.submit(_save_npz, folder / f"{stem}_control.npz", targets=signal.targets,
-                                     mask=signal.mask, fps=np.array(motion.fps))
-        # Free coordinates of a target take the motion's own value, so a pelvis path's markers
-        # ride at pelvis height while its ribbon lies on the floor.
-        shown = np.where(signal.mask[:n], signal.targets[:n], motion.joints)
-        mp4, timings["render_s"] = self.rendered(progress, lambda report: render_video(
-            motion.joints, folder / f"{stem}.mp4", fps=motion.fps, title=motion.text, targets=shown,
-            target_mask=signal.joint_mask()[:n], trajectory=controls.pelvis_path(signal, n), progress=report))
-        files = {"mp4": mp4} | saved.result() | {"signal": signal_file.result()}
-        result = Result(req, motion, folder, files, timings, kind="control", signal=signal)
-        session.add(result)
-        return result
+        signal_file = file_writer.submit(lambda: {"signal": _save_npz(
+            folder / f"{stem}_control.npz", targets=signal.targets, mask=signal.mask, fps=np.array(motion.fps))})
+        result = Result(req, motion, folder, {}, timings, kind="control", signal=signal)
+        return self._finish(session, result, [saved, signal_file], progress)
 
     def control_figure(self, result: Result):
         sig, m = result.signal, result.motion

@@ -67,17 +67,19 @@ def test_generate_returns_video_figure_and_files(client, pipe):
     video, skeleton, summary, files, words, layers, first, last, heatmap, word_video = out
     frames = mp4_frames(video)
     assert frames.shape == (32, 448, 448, 3) and frames.std() > 5, "a decodable, non-blank 32-frame video"
+    stem = "a-person-waves-their-right-hand-happily_seed3"
+    assert Path(video).name == f"{stem}_preview.mp4", "the preview first; the antialiased MP4 follows"
     assert skeleton["type"] == "plotly"
     fig = json.loads(skeleton["plot"])
     steps = fig["layout"]["sliders"][0]["steps"]
     assert len(steps) == 32 and steps[5]["method"] == "update" and not fig.get("frames")
     assert "happily" in summary and "32 frames" in summary and "seed 3" in summary
     names = [Path(f).name for f in files]
-    stem = "a-person-waves-their-right-hand-happily_seed3"
-    assert names == [f"{stem}.mp4", f"{stem}.bvh", f"{stem}_joints.npy", f"{stem}_features.npy", f"{stem}.npz"]
+    assert names == [f"{stem}.bvh", f"{stem}_joints.npy", f"{stem}_features.npy", f"{stem}.npz"], \
+        "the MP4 joins the downloads once rendered; the preview never does"
     by_ext = {Path(f).suffix: Path(f) for f in files if not f.endswith("_features.npy")}
     joints = np.load(by_ext[".npy"])
-    np.testing.assert_array_equal(np.load(files[3]).shape, (32, 263))
+    np.testing.assert_array_equal(np.load(files[2]).shape, (32, 263))
     assert joints.shape == (32, 22, 3) and joints.dtype == np.float32 and np.isfinite(joints).all()
     with np.load(by_ext[".npz"]) as z:
         np.testing.assert_array_equal(z["joints"], joints)
@@ -91,6 +93,33 @@ def test_generate_returns_video_figure_and_files(client, pipe):
     assert layers["value"] == [0, 1, 2] and (first["value"], last["value"]) == (1, STEPS)
     assert heatmap is None and word_video is None
 
+    # the chained event: the antialiased MP4 takes the preview's place and leads the downloads
+    full, listed = client.predict("cm", api_name="/generate_video")
+    assert Path(full).name == f"{stem}.mp4" and [Path(f).name for f in listed] == [f"{stem}.mp4"] + names
+    full_frames = mp4_frames(full)
+    assert full_frames.shape == frames.shape and not np.array_equal(full_frames, frames), "another render"
+
+
+def test_an_identical_request_shows_its_full_video_without_rendering_again(server, client):
+    _, studio_app = server
+    first = generate(client, "a person bows", seconds=1.2, seed=21)
+    assert Path(first[0]).name.endswith("_preview.mp4")
+    full, _ = client.predict("cm", api_name="/generate_video")
+    on_server = next(studio_app.workspace.sessions.rglob(Path(full).name))
+    mtime = on_server.stat().st_mtime_ns
+    again = generate(client, "a person bows", seconds=1.2, seed=21)
+    assert Path(again[0]).name == Path(full).name, "answered with the full video rendered before"
+    assert Path(again[3][0]).name == Path(full).name and "shown again without sampling" in again[2]
+    full_again, listed = client.predict("cm", api_name="/generate_video")
+    assert Path(full_again).name == Path(full).name and len(listed) == 5
+    assert on_server.stat().st_mtime_ns == mtime, "not rendered again"
+    assert len(list(on_server.parent.glob("*.mp4"))) == 2, "one preview, one full video"
+
+
+def test_the_full_video_needs_a_result_first(client):
+    with pytest.raises(AppError, match="generate a motion first"):
+        client.predict("cm", api_name="/generate_video")
+
 
 def test_bvh_downloads_come_in_the_chosen_units(client):
     """Centimetres as saved; metres written beside them on demand and listed in their place."""
@@ -100,13 +129,16 @@ def test_bvh_downloads_come_in_the_chosen_units(client):
     cm = next(Path(f) for f in out[3] if f.endswith(".bvh"))
     files = client.predict("m", api_name="/bvh_units")
     names = [Path(f).name for f in files]
-    assert names[1] == cm.stem + "_m.bvh" and len(names) == 5 and names[2].endswith("_joints.npy")
-    in_m, in_cm = load_bvh(files[1]), load_bvh(cm)
+    assert names[0] == cm.stem + "_m.bvh" and len(names) == 4 and names[1].endswith("_joints.npy")
+    in_m, in_cm = load_bvh(files[0]), load_bvh(cm)
     np.testing.assert_allclose(in_m.joints, in_cm.joints, atol=1e-4)
     offsets = lambda path: [float(x) for line in Path(path).read_text().splitlines()  # noqa: E731
                             if line.strip().startswith("OFFSET") for x in line.split()[1:]]
-    np.testing.assert_allclose(np.array(offsets(cm)), 100 * np.array(offsets(files[1])), atol=1e-3)
-    assert Path(client.predict("cm", api_name="/bvh_units")[1]).name == cm.name
+    np.testing.assert_allclose(np.array(offsets(cm)), 100 * np.array(offsets(files[0])), atol=1e-3)
+    assert Path(client.predict("cm", api_name="/bvh_units")[0]).name == cm.name
+    # the full video's event relists the downloads in the chosen units, its MP4 first
+    _, listed = client.predict("m", api_name="/generate_video")
+    assert [Path(f).name for f in listed][:2] == [cm.stem + ".mp4", cm.stem + "_m.bvh"] and len(listed) == 5
     with pytest.raises(AppError, match="BVH units must be one of cm, m"):
         client.predict("inch", api_name="/bvh_units")
 
@@ -279,7 +311,18 @@ def test_only_the_studios_outputs_are_served(server, client):
 def test_every_event_has_an_api_name(server):
     _, studio_app = server
     names = [fn.api_name for fn in studio_app.demo.fns.values()]
-    assert all(names) and {"generate", "attention", "attention_video"} <= set(names)
+    assert all(names) and {"generate", "generate_video", "attention", "attention_video"} <= set(names)
+
+
+def test_videos_render_apart_from_the_views(server):
+    """A word click (its heatmap) and a downloads relisting queue as "views"; every video renders in
+    "render": neither waits for the other."""
+    groups = {fn.api_name: fn.concurrency_id for fn in server[1].demo.fns.values()}
+    for name in ("generate_video", "edit_video", "control_video", "attention_video", "edit_files"):
+        assert groups[name] == "render", name
+    for name in ("attention", "attention_refresh", "bvh_units", "edit_attention"):
+        assert groups[name] == "views", name
+    assert groups["generate"] == groups["edit"] == groups["control"] == "model"
 
 
 def test_without_a_model_the_studio_shows_why(tmp_path):
@@ -420,6 +463,43 @@ def test_sessions_keep_recent_results_and_cache_renders(pipe, tmp_path):
         assert studio.word_video(current, areq).exists()
         session.close()
         assert not session.folder.exists()
+    finally:
+        ws.close()
+
+
+def test_the_preview_comes_first_and_the_full_video_is_rendered_once(pipe, tmp_path, monkeypatch):
+    import salad.render as render
+
+    calls = []
+    real = render.render_video
+
+    def recorded(joints, path, **kwargs):
+        calls.append((Path(path).name, kwargs.get("antialias", True)))
+        return real(joints, path, **kwargs)
+
+    monkeypatch.setattr(render, "render_video", recorded)
+    ws = Workspace(tmp_path)
+    studio = Studio(pipe, ws)
+    try:
+        session = studio.session(None, "client")
+        req = GenerateRequest("a person walks forward", 1.0, 7, 2, 7.5, "ddim")
+        result = studio.generate(session, req)
+        stem = file_stem(req)
+        assert calls == [(f"{stem}_preview.mp4", False)], "the preview: no antialiasing"
+        assert studio.shown_video(result) == result.files["preview"] and "mp4" not in result.files
+        assert [p.name for p in studio.downloads(result)] == [f"{stem}.bvh", f"{stem}_joints.npy",
+                                                              f"{stem}_features.npy", f"{stem}.npz"]
+        full = studio.full_video(result)
+        assert calls[-1] == (f"{stem}.mp4", True) and full == result.files["mp4"] == result.folder / f"{stem}.mp4"
+        assert studio.downloads(result)[0] == full and result.files["preview"] not in studio.downloads(result)
+        assert result.timings["full_render_s"] > 0 and result.timings["render_s"] > 0
+        # kept: neither the full video nor an identical request renders again
+        assert studio.full_video(result) == full and studio.generate(session, req) is result
+        assert studio.shown_video(result) == full and len(calls) == 2
+        full.unlink()                                   # pruned: the request samples again
+        again = studio.generate(session, req)
+        assert again is not result and studio.shown_video(again) == again.files["preview"] and len(calls) == 3
+        assert again.peek(("skeleton",)) is None, "the 3D figure is built on request"
     finally:
         ws.close()
 

@@ -3,11 +3,21 @@ from app.bench import format_table, run
 
 
 def test_studio_latency_bench_times_every_request(tiny_model):
+    from app.bench import ROWS
+
     report = run(str(tiny_model), steps=2, sampler="ddim", bf16=False, threads=1)
-    for key in ("generate_s", "edit_first_s", "edit_same_source_s"):
+    assert report["settings"]["fetch_all"] is False, "the page fetches the videos only"
+    for _, key, _ in ROWS:
         assert report[key] and all(t > 0 for t in report[key]), key
+    for preview, full in (("generate_s", "generate_full_s"), ("edit_first_s", "edit_first_full_s"),
+                          ("control_s", "control_full_s")):
+        assert all(f > p for p, f in zip(report[preview], report[full])), "the full video: the preview call and more"
     table = format_table(report)
-    assert "generate → video" in table and "edit again, same source" in table
+    for text in ("generate → preview video", "generate → full video", "edit again, same source → preview",
+                 "control (path) → preview video", "word click → heatmap"):
+        assert text in table, text
+    full_row = next(line for line in table.splitlines() if line.startswith("generate → full video"))
+    assert full_row.split()[-1] == "-", "the full-video rows have no target"
 
 
 def test_download_leftovers_are_removed_only_when_empty_recent_and_named_like_them(tmp_path, monkeypatch):
@@ -43,3 +53,15 @@ def test_steps_default_to_the_samplers_and_a_missing_student_is_refused(tiny_mod
     monkeypatch.undo()
     with pytest.raises(SystemExit, match="cannot benchmark the consistency sampler: .*has no consistency student"):
         run(str(tiny_model), steps=None, sampler="consistency", bf16=False, threads=1)
+
+
+def test_a_video_url_is_read_from_either_shape_of_a_video_output():
+    import pytest
+
+    from app.bench import _video_url
+
+    url = "http://127.0.0.1:1/gradio_api/file=/x/a_preview.mp4"
+    assert _video_url({"path": "/x/a_preview.mp4", "url": url}) == url
+    assert _video_url({"video": {"path": "/x/a_preview.mp4", "url": url}, "subtitles": None}) == url
+    with pytest.raises(RuntimeError, match="no video URL"):
+        _video_url("/x/a_preview.mp4")

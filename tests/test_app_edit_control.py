@@ -76,6 +76,8 @@ def test_word_swap_gives_a_side_by_side_video_both_maps_and_files(client, pipe):
     video, summary, word, source_map, edited_map, files = edit(client, seed=3)
     frames = mp4_frames(video)
     assert frames.shape == (24, 384, 768, 3) and frames.std() > 5, "two 384-px panels, 24 frames"
+    assert Path(video).name.endswith("_side-by-side_preview.mp4"), "the preview first"
+    assert len(files) == 8 and not any(f.endswith(".mp4") for f in files), "no video among the downloads yet"
     assert "Word swap" in summary and "“right” → “left”" in summary and "80%" in summary
     assert "Most changed" in summary
     words = [c[0] for c in word["choices"]]
@@ -91,7 +93,12 @@ def test_word_swap_gives_a_side_by_side_video_both_maps_and_files(client, pipe):
     assert np.load(by_name(files, "_edited_features.npy")).shape == (24, 263)
     assert by_name(files, "_edited.bvh").read_text().startswith("HIERARCHY")
 
-    # The follow-up adds the edited motion's own video and both attention maps.
+    # The chained events: the antialiased side-by-side MP4 replaces the preview and leads the
+    # downloads, then the edited motion's own video and both attention maps join them.
+    full, listed = client.predict("cm", api_name="/edit_video")
+    assert Path(full).name == Path(video).name.replace("_preview.mp4", ".mp4")
+    assert mp4_frames(full).shape == frames.shape and [Path(f).name for f in listed][0] == Path(full).name
+    assert len(listed) == 9
     everything = client.predict(api_name="/edit_files")
     names = [Path(f).name for f in everything]
     assert len(names) == 13 and names[0].endswith("_side-by-side.mp4") and names[1].endswith("_edited.mp4")
@@ -135,11 +142,19 @@ def test_an_added_word_has_no_source_map(client):
     assert "was added" in json.dumps(plot(src)) and "“slowly”" in plot(dst)["layout"]["title"]["text"]
 
 
-def test_an_identical_edit_is_answered_without_sampling_again(client):
+def test_an_identical_edit_is_answered_without_sampling_again(client, server):
     first = edit(client, seed=9)
     again = edit(client, seed=9)
     assert again[0] == first[0] or Path(again[0]).read_bytes() == Path(first[0]).read_bytes()
     assert "shown again without sampling" in again[1]
+    # once its full video is made, a repeat shows (and lists) it without rendering anything again
+    full, _ = client.predict("cm", api_name="/edit_video")
+    on_server = next(server[1].workspace.sessions.rglob(Path(full).name))
+    mtime = on_server.stat().st_mtime_ns
+    third = edit(client, seed=9)
+    assert Path(third[0]).name == Path(full).name and Path(third[5][0]).name == Path(full).name
+    assert Path(client.predict("cm", api_name="/edit_video")[0]).name == Path(full).name
+    assert on_server.stat().st_mtime_ns == mtime, "not rendered again"
 
 
 @pytest.mark.parametrize("kwargs, message", [
@@ -166,7 +181,7 @@ def test_bad_edit_inputs_are_reported(client, kwargs, message):
 
 
 def test_edit_views_need_an_edit_first(client):
-    for api, args in (("/edit_files", ()), ("/edit_attention", (0,))):
+    for api, args in (("/edit_files", ()), ("/edit_attention", (0,)), ("/edit_video", ("cm",))):
         with pytest.raises(AppError, match="run an edit first"):
             client.predict(*args, api_name=api)
 
@@ -175,10 +190,15 @@ def test_edit_views_need_an_edit_first(client):
 
 def test_path_control_renders_targets_and_reports_its_error(client, pipe):
     video, top_view, summary, files = control(client, preset="turn-left", seconds=1.2, speed=1.2, seed=2)
-    frames = mp4_frames(video)
-    assert frames.shape == (24, 448, 448, 3)
-    green = (frames[..., 1].astype(int) - frames[..., 0] > 60) & (frames[..., 1].astype(int) - frames[..., 2] > 20)
-    assert green.sum(axis=(1, 2)).min() > 50, "the target path and markers are drawn in green"
+    assert Path(video).name.endswith("_preview.mp4") and not any(f.endswith(".mp4") for f in files)
+    full, listed = client.predict("cm", api_name="/control_video")
+    assert Path(full).name == Path(video).name.replace("_preview.mp4", ".mp4")
+    assert [Path(f).name for f in listed] == [Path(full).name] + [Path(f).name for f in files]
+    for shown in (video, full):
+        frames = mp4_frames(shown)
+        assert frames.shape == (24, 448, 448, 3)
+        green = (frames[..., 1].astype(int) - frames[..., 0] > 60) & (frames[..., 1].astype(int) - frames[..., 2] > 20)
+        assert green.sum(axis=(1, 2)).min() > 50, "the target path and markers are drawn in green"
     fig = plot(top_view)
     names = [t["name"] for t in fig["data"]]
     assert {"target", "achieved", "start"} <= set(names)
@@ -285,7 +305,8 @@ def test_preview_shows_targets_or_says_what_is_missing(client):
 
 def test_every_new_event_has_an_api_name(server):
     names = {fn.api_name for fn in server[1].demo.fns.values()}
-    assert {"edit", "edit_files", "edit_attention", "control", "control_preview"} <= names
+    assert {"edit", "edit_video", "edit_files", "edit_attention", "control", "control_video",
+            "control_preview"} <= names
 
 
 # ---------------------------------------------------------------- the pieces
@@ -387,11 +408,52 @@ def test_sessions_reuse_identical_requests_per_kind(pipe, tmp_path):
                                                 2, 5, "ddim"), lambda *a: None)
         assert studio.edit(session, req) is first and session.latest("edit") is first and first.reused == 1
         assert session.current is None, "edits are not generations"
-        first.files["mp4"].unlink()                   # a pruned file: sampled again
+        first.files["preview"].unlink()               # a pruned file: sampled again
         again = studio.edit(session, req)
         assert again is not first and session.latest("edit") is again
         assert first.folder.exists() and not other.folder.exists(), "the oldest of the kept results goes"
         assert isinstance(Session("k", tmp_path / "s").latest("control"), type(None))
+    finally:
+        ws.close()
+
+
+def test_edits_and_guided_motions_preview_first_and_render_in_full_once(pipe, tmp_path, monkeypatch):
+    import salad.render as render
+
+    calls = []
+    for name in ("render_video", "render_side_by_side"):
+        def recorded(first, path_or_labels, *args, real=getattr(render, name), name=name, **kwargs):
+            path = path_or_labels if name == "render_video" else args[0]
+            calls.append((name, Path(path).name, kwargs.get("antialias", True)))
+            return real(first, path_or_labels, *args, **kwargs)
+        monkeypatch.setattr(render, name, recorded)
+    ws = Workspace(tmp_path)
+    studio = Studio(pipe, ws)
+    try:
+        session = studio.session(None, "client")
+        req = parse_edit(pipe, SOURCE, "mirror", "", None, "", 1, "upper", 0.2, False, 0.8, 0, 2, 5, "ddim")
+        edited = studio.edit(session, req)
+        assert calls == [("render_side_by_side", edited.files["preview"].name, False)]
+        assert edited.files["preview"].name.endswith("_side-by-side_preview.mp4")
+        assert len(studio.downloads(edited)) == 8 and studio.shown_video(edited) == edited.files["preview"]
+        full = studio.full_video(edited)
+        assert calls[-1] == ("render_side_by_side", full.name, True) and full.name.endswith("_side-by-side.mp4")
+        everything = studio.edit_downloads(edited)
+        assert len(everything) == 13 and everything[0] == full and edited.files["preview"] not in everything
+        assert calls[-1][0] == "render_video" and calls[-1][1].endswith("_edited.mp4") and len(calls) == 3
+        assert studio.edit(session, req) is edited and studio.edit_downloads(edited) == everything
+        assert studio.shown_video(edited) == full and len(calls) == 3, "nothing rendered again"
+
+        calls.clear()
+        creq, signal = parse_control(pipe, "a person walks forward", "path", "circle", 1.2, 1.0, None, "", "", 2.0,
+                                     0, 2, 5.0, True, "ddim")
+        guided = studio.control(session, creq, signal)
+        assert calls == [("render_video", guided.files["preview"].name, False)]
+        assert [p.name for p in studio.downloads(guided)][-1].endswith("_control.npz")
+        full = studio.full_video(guided)
+        assert calls[-1] == ("render_video", full.name, True) and studio.downloads(guided)[0] == full
+        assert studio.control(session, creq, signal) is guided and studio.full_video(guided) == full
+        assert len(calls) == 2
     finally:
         ws.close()
 

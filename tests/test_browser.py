@@ -126,14 +126,30 @@ def video_size(page, selector: str):
         return v ? [v.videoWidth, v.videoHeight, v.paused, v.loop] : null; }}""")
 
 
+def record_video_sources(page, selector: str) -> None:
+    """Keep every src the <video> under `selector` shows, in order, in window.__srcs."""
+    page.evaluate("""sel => { window.__srcs = [];
+        setInterval(() => { const v = document.querySelector(sel);
+            if (v && v.src && window.__srcs[window.__srcs.length - 1] !== v.src) window.__srcs.push(v.src); }, 15); }""",
+                  selector)
+
+
 def test_generate_then_explore_a_words_attention(studio_url, page):
     page.goto(studio_url, wait_until="load")
     page.locator("#prompt textarea").fill(PROMPT)
+    record_video_sources(page, "#motion-video video")
     page.locator("#generate-button").click()
 
-    # The rendered MP4 loads, plays and loops.
+    # The preview shows first, then the antialiased MP4 takes its place and joins the downloads;
+    # it loads, plays and loops.
     page.wait_for_function("() => { const v = document.querySelector('#motion-video video');"
-                           " return v && v.videoWidth > 0 && v.currentTime > 0.2; }")
+                           " return v && v.videoWidth > 0 && v.currentTime > 0.2 && !v.src.includes('_preview'); }")
+    sources = page.evaluate("() => window.__srcs")
+    assert "_preview.mp4" in sources[0] and sources[-1].endswith(".mp4") and "_preview" not in sources[-1], sources
+    page.wait_for_function("() => Array.from(document.querySelectorAll('#downloads .filename'))"
+                           ".some(e => e.innerText.replace(/\\s/g, '').endsWith('.mp4'))")
+    names = ["".join(n.split()) for n in page.locator("#downloads .filename").all_text_contents()]
+    assert not any("_preview" in n for n in names), names
     width, height, paused, loop = video_size(page, "#motion-video video")
     assert (width, height) == (448, 448) and not paused and loop
     assert "happily" in page.locator("#summary").inner_text()
@@ -190,10 +206,12 @@ def set_slider(page, selector: str, value) -> None:
 
 
 def wait_for_new_video(page, selector: str, previous: str | None, width: int) -> str:
-    """Wait until the <video> under `selector` shows a new file of the given width; returns its src."""
+    """Wait until the <video> under `selector` shows a new file of the given width, its full
+    (antialiased) render rather than the preview shown first; returns its src."""
     page.wait_for_function("""([sel, prev, width]) => {
         const v = document.querySelector(sel);
-        return v && v.src && v.src !== prev && v.videoWidth === width; }""", arg=[selector, previous, width])
+        return v && v.src && v.src !== prev && !v.src.includes('_preview') && v.videoWidth === width; }""",
+                           arg=[selector, previous, width])
     return page.evaluate(f"() => document.querySelector({selector!r}).src")
 
 
@@ -320,8 +338,7 @@ def test_at_800_px_the_views_are_wide_framed_and_nothing_overlaps(studio_url, pa
     page.goto(studio_url, wait_until="load")
     page.locator("#prompt textarea").fill("a person walks forward")
     page.locator("#generate-button").click()
-    page.wait_for_function("() => { const v = document.querySelector('#motion-video video');"
-                           " return v && v.videoWidth > 0; }")
+    wait_for_new_video(page, "#motion-video video", None, 448)     # the full video, after the preview
     plot = "#skeleton-plot .js-plotly-plot"
     page.wait_for_function(f"() => {{ const g = document.querySelector({plot!r}); return g && g.data; }}")
     page.wait_for_timeout(500)      # the figure is drawn a moment after its data arrives

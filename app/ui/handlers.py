@@ -27,6 +27,9 @@ from .summaries import control_markdown, edit_markdown, summary_markdown
 log = logging.getLogger("salad.studio")
 NO_MOTION = "generate a motion first: the attention maps belong to the last generated motion"
 NO_EDIT = "run an edit first: the maps belong to the last edit"
+NO_RESULT = {"generate": "generate a motion first: its video is rendered after it",
+             "edit": "run an edit first: its video is rendered after it",
+             "control": "generate with control first: its video is rendered after it"}
 TARGET_LABELS = {"swap": "Target prompt (the source with words replaced)",
                  "refine": "Target prompt (the source with words added)"}
 
@@ -108,7 +111,7 @@ class Handlers:
         files = [str(p) for p in self.studio.downloads(result)]
         return (
             session,
-            str(result.files["mp4"]),
+            str(self.studio.shown_video(result)),
             self.studio.skeleton_figure(result),
             summary_markdown(result),
             files,
@@ -119,6 +122,26 @@ class Handlers:
             None,
             None,
         )
+
+    def _full_video(self, kind: str, units, state, request: gr.Request, progress):
+        """The session's latest `kind` result's antialiased MP4 (rendered now unless it was before)
+        and its downloads relisted with it, BVH files in `units`."""
+        units = parse_bvh_units(units)
+        result = state.latest(kind) if isinstance(state, Session) else None
+        if result is None:
+            raise ValueError(NO_RESULT[kind])
+        self.studio.session(state, request.session_hash)
+        video = self.studio.full_video(result, _gr_progress(progress))
+        return str(video), [str(p) for p in self.studio.in_bvh_units(result, self.studio.downloads(result), units)]
+
+    def generate_video(self, units, state, request: gr.Request, progress=gr.Progress()):
+        return self._full_video("generate", units, state, request, progress)
+
+    def edit_video(self, units, state, request: gr.Request, progress=gr.Progress()):
+        return self._full_video("edit", units, state, request, progress)
+
+    def control_video(self, units, state, request: gr.Request, progress=gr.Progress()):
+        return self._full_video("control", units, state, request, progress)
 
     def _request(self, result: Result, word, layers, first_step, last_step) -> AttentionRequest:
         return parse_attention(result.motion.attention, word, layers, first_step, last_step)
@@ -182,9 +205,8 @@ class Handlers:
         result = self.studio.edit(session, req, _gr_progress(progress))
         focus = self.studio.edit_focus_word(result)
         left, right = self.studio.edit_heatmaps(result, focus)
-        files = [str(result.files[k]) for k in ("mp4", "edited_bvh", "source_bvh", "edited_npy", "source_npy",
-                                                 "edited_features", "source_features", "edited_npz", "source_npz")]
-        return (session, str(result.files["mp4"]), edit_markdown(result, self.studio.edit_word_map(result)),
+        files = [str(p) for p in self.studio.downloads(result)]
+        return (session, str(self.studio.shown_video(result)), edit_markdown(result, self.studio.edit_word_map(result)),
                 gr.Radio(choices=word_choices(result.motion.attention.words), value=focus,
                          label="Word: its attention before and after the edit"),
                 left, right, files)
@@ -236,7 +258,8 @@ class Handlers:
         session = self.studio.session(state, request.session_hash)
         result = self.studio.control(session, req, signal, _gr_progress(progress))
         files = [str(p) for p in self.studio.downloads(result)]
-        return session, str(result.files["mp4"]), self.studio.control_figure(result), control_markdown(result), files
+        return (session, str(self.studio.shown_video(result)), self.studio.control_figure(result),
+                control_markdown(result), files)
 
     # ------------------------------------------------------------ real motions
     def real_mode(self, mode, mirror, source, target, current):
@@ -297,8 +320,9 @@ class Handlers:
 
 def guard_all(handlers: Handlers) -> dict:
     """The handlers wrapped by `guarded`, by name."""
-    names = ("length_mode", "sampler_steps", "real_sampler", "generate", "attention", "attention_video", "edit_mode", "edit_words", "edit",
-             "edit_files", "edit_attention", "control_task", "control_preview", "control", "real_mode", "real_clip",
-             "real_upload", "edit_real")
+    names = ("length_mode", "sampler_steps", "real_sampler", "generate", "generate_video", "attention",
+             "attention_video", "edit_mode", "edit_words", "edit", "edit_video", "edit_files", "edit_attention",
+             "control_task", "control_preview", "control", "control_video", "real_mode", "real_clip", "real_upload",
+             "edit_real")
     units = {f"bvh_units_{kind}": guarded(handlers.bvh_units(kind)) for kind in ("generate", "edit", "control", "real")}
     return {n: guarded(getattr(handlers, n)) for n in names} | units | {"unload": handlers.unload}

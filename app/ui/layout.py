@@ -40,12 +40,22 @@ LICENCE_NOTE = ("The embedded model is trained on the Bandai-Namco Research Moti
                 "(CC BY-NC 4.0: attribution, non-commercial use).")
 
 # api_name of every event, for API clients (gradio_client) and the docs.
-API_NAMES = ("generate", "attention", "attention_video", "attention_refresh", "length_mode", "load_example",
-             "edit", "edit_files", "edit_attention", "edit_mode", "edit_words", "edit_length_mode", "load_edit_example",
-             "control", "control_task", "control_preview", "control_preview_refresh",
+API_NAMES = ("generate", "generate_video", "attention", "attention_video", "attention_refresh", "length_mode",
+             "load_example", "edit", "edit_video", "edit_files", "edit_attention", "edit_mode", "edit_words",
+             "edit_length_mode", "load_edit_example",
+             "control", "control_video", "control_task", "control_preview", "control_preview_refresh",
              "edit_real", "real_mode", "real_words", "real_clip", "real_upload",
              "sampler_steps", "edit_sampler_steps", "control_sampler_steps", "real_sampler",
              "bvh_units", "edit_bvh_units", "control_bvh_units", "real_bvh_units")
+
+
+def _full_video(h: dict, kind: str, api_name: str, panel, made, state):
+    """After `made` (a result shown with its preview video): the antialiased MP4 replaces the
+    preview and joins the downloads. Renders queue apart from the views ("render"), so that a
+    word click or a relisting never waits for one; the render lock serialises them anyway."""
+    return made.success(h[api_name], [panel.bvh_units, state], [panel.video, panel.downloads], api_name=api_name,
+                        preprocess=False, concurrency_id="render", concurrency_limit=1, show_progress="minimal",
+                        show_progress_on=[panel.video])
 
 
 def _close_session(state) -> None:
@@ -118,9 +128,12 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
         shown = gr.on([att.word.input, att.layers.input, att.first_step.release, att.last_step.release],
                       h["attention"], inputs=attention_inputs, outputs=attention_outputs, api_name="attention",
                       preprocess=False, concurrency_id="views", trigger_mode="always_last")
+        # the tinted video renders apart from the views: the next word's map need not wait for it
         shown.success(h["attention_video"], attention_inputs, att.video, api_name="attention_video",
-                      preprocess=False, concurrency_id="views", trigger_mode="always_last")
-        _wire_units(h, "generate", "bvh_units", gen, generated, state)
+                      preprocess=False, concurrency_id="render", concurrency_limit=1, trigger_mode="always_last")
+        # the preview first (with everything else), then the antialiased MP4 (the download)
+        rendered = _full_video(h, "generate", "generate_video", gen, generated, state)
+        _wire_units(h, "generate", "bvh_units", gen, rendered, state)
         _wire_edit(h, ed, state, settings)
         _wire_control(h, ctl, generated, state, settings)
         _wire_real(h, real, state, settings)
@@ -129,8 +142,8 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
 
 
 def _wire_units(h: dict, kind: str, api_name: str, panel, made, state) -> None:
-    """A tab's BVH units: choosing them relists its downloads, and so does every new result (`made`),
-    whose BVH files are saved in centimetres."""
+    """A tab's BVH units: choosing them relists its downloads, and so does the last step of every
+    new result (`made`), whose BVH files are saved in centimetres."""
     handler = h[f"bvh_units_{kind}"]
     panel.bvh_units.input(handler, [panel.bvh_units, state], panel.downloads, api_name=api_name, preprocess=False,
                           concurrency_id="views", show_progress="hidden")
@@ -139,8 +152,9 @@ def _wire_units(h: dict, kind: str, api_name: str, panel, made, state) -> None:
 
 
 def _wire_edit(h: dict, ed, state, settings: Settings) -> None:
-    """The Edit tab: controls follow the mode; an edit shows its video and maps first, then its
-    remaining downloads (the edited motion's own MP4, attention NPZ/PNG) are made."""
+    """The Edit tab: controls follow the mode; an edit shows its preview video and maps first, then
+    its antialiased video, then its remaining downloads (the edited motion's own MP4, attention
+    NPZ/PNG) are made."""
     quick = dict(queue=False, show_progress="hidden", api_visibility="undocumented")
     ed.mode.change(h["edit_mode"], [ed.mode, ed.mirror, ed.source, ed.target, ed.reweight_word],
                    [ed.mode_help, ed.target, ed.tau, ed.mirror, ed.reweight_word], api_name="edit_mode",
@@ -155,8 +169,10 @@ def _wire_edit(h: dict, ed, state, settings: Settings) -> None:
                    outputs=[state, ed.video, ed.summary, ed.word, ed.source_heatmap, ed.edited_heatmap, ed.downloads],
                    api_name="edit", preprocess=False, concurrency_id="model", show_progress_on=[ed.video],
                    concurrency_limit=settings.concurrency, trigger_mode="once")
-    files = edited.success(h["edit_files"], [state], ed.downloads, api_name="edit_files", preprocess=False,
-                           concurrency_id="views", show_progress="minimal", show_progress_on=[ed.files_status])
+    rendered = _full_video(h, "edit", "edit_video", ed, edited, state)
+    files = rendered.success(h["edit_files"], [state], ed.downloads, api_name="edit_files", preprocess=False,
+                             concurrency_id="render", concurrency_limit=1, show_progress="minimal",
+                             show_progress_on=[ed.files_status])
     _wire_units(h, "edit", "edit_bvh_units", ed, files, state)
     ed.word.input(h["edit_attention"], [ed.word, state], [ed.source_heatmap, ed.edited_heatmap],
                   api_name="edit_attention", preprocess=False, concurrency_id="views", trigger_mode="always_last")
@@ -164,7 +180,8 @@ def _wire_edit(h: dict, ed, state, settings: Settings) -> None:
 
 def _wire_control(h: dict, ctl, generated, state, settings: Settings) -> None:
     """The Control tab: inputs follow the kind of targets, a preview of the targets follows
-    every change, and a run shows the guided motion with its targets and error."""
+    every change, and a run shows the guided motion with its targets and error (a preview video,
+    then the antialiased one)."""
     quick = dict(queue=False, show_progress="hidden", api_visibility="undocumented")
     ctl.task.change(h["control_task"], ctl.task, [ctl.path_group, ctl.upload_group, ctl.upload_help, ctl.keyframes],
                     api_name="control_task", **quick)
@@ -182,7 +199,8 @@ def _wire_control(h: dict, ctl, generated, state, settings: Settings) -> None:
                    outputs=[state, ctl.video, ctl.top_view, ctl.summary, ctl.downloads], api_name="control",
                    preprocess=False, concurrency_id="model", show_progress_on=[ctl.video],
                    concurrency_limit=settings.concurrency, trigger_mode="once")
-    _wire_units(h, "control", "control_bvh_units", ctl, guided, state)
+    rendered = _full_video(h, "control", "control_video", ctl, guided, state)
+    _wire_units(h, "control", "control_bvh_units", ctl, rendered, state)
 
 
 def _wire_real(h: dict, real, state, settings: Settings) -> None:
