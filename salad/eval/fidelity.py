@@ -196,13 +196,14 @@ def _shown(path: str) -> str:
     return str(p.relative_to(REPO_ROOT)) if p.is_relative_to(REPO_ROOT) else str(path)
 
 
-def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int = 50, cfg: float = 7.5,
+def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | None = None, cfg: float = 7.5,
                       sampler: str = "ddim", classes=None, split: str = "test", classifier=None,
                       progress: Callable[[int, int], None] | None = None) -> dict:
     """Per-class checks of generated against real motion; with a `classifier` (salad.eval.classifiers), also
     the share of generated motions it puts in the prompt's action (and style, for styled classes)."""
     if not isinstance(seeds, int) or seeds < 1:
         raise ValueError(f"seeds must be a positive integer, got {seeds!r}")
+    steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler)     # the report names the steps used
     labels = read_labels(data_root)
     present = {lab.content for lab in labels.values()}
     todo = [c for c in fidelity_classes(classes) if c.content in present]

@@ -107,7 +107,7 @@ def generate_auto_length(pipe, prompts: list[str], seed: int = 0, steps: int = 5
     return pipe.decode(z, None, prompts, seed)
 
 
-def evaluate_lengths(pipe, dataset, samples: int = 256, seed: int = 0, steps: int = 50, cfg: float = 7.5,
+def evaluate_lengths(pipe, dataset, samples: int = 256, seed: int = 0, steps: int | None = None, cfg: float = 7.5,
                      sampler: str = "ddim", batch: int = 16, bin_frames: int = DEFAULT_BIN_FRAMES,
                      labels: dict | None = None, progress: Callable[[int, int], None] | None = None
                      ) -> dict[str, Any]:
@@ -121,6 +121,7 @@ def evaluate_lengths(pipe, dataset, samples: int = 256, seed: int = 0, steps: in
         raise ValueError(f"samples must be an integer >= 2, got {samples!r}")
     if not isinstance(batch, int) or not 1 <= batch <= 64:
         raise ValueError(f"batch must be an integer in 1..64, got {batch!r}")
+    steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler)
     items = dataset.items
     canvas = int(pipe.canvas_frames)
     rng = np.random.default_rng(seed)
