@@ -153,6 +153,32 @@ def tiny_model(tiny_dataset, tmp_path_factory) -> Path:
     return model
 
 
+def denoiser_toml(path: Path, root: Path, steps: int) -> Path:
+    """A tiny denoiser config (its VAE comes from --vae)."""
+    path.write_text(f"""vae = "does/not/exist"
+[data]
+root = "{root}"
+max_frames = 40
+[model]
+latent_dim = 8
+dim = 32
+heads = 4
+ff_dim = 64
+layers = 3
+text_dim = 384
+[optim]
+lr = 1e-3
+warmup_steps = 4
+batch_size = 4
+max_steps = {steps}
+[run]
+bf16 = false
+checkpoint_every = 2
+log_every = 1
+""")
+    return path
+
+
 def consistency_toml(path, data, teacher, steps):
     """A consistency-distillation config for the tiny model."""
     path.write_text(f"""teacher = "{teacher}"

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from salad.diffusion.consistency import consistency_fn, consistency_sample, grid_timesteps
-from conftest import consistency_toml
+from conftest import consistency_toml, denoiser_toml
 from salad.diffusion.schedule import DiffusionConfig, NoiseSchedule
 
 
@@ -274,28 +274,9 @@ def test_a_run_does_not_resume_onto_another_teacher(tiny_model, tiny_dataset, tm
     other = tmp_path / "other"
     other.mkdir()
     (other / "vae").symlink_to((tiny_model / "vae").resolve())
-    cfg_d = tmp_path / "d.toml"
-    cfg_d.write_text(f"""vae = "{tiny_model / 'vae'}"
-[data]
-root = "{tiny_dataset}"
-max_frames = 40
-[model]
-latent_dim = 8
-dim = 32
-heads = 4
-ff_dim = 64
-layers = 3
-text_dim = 384
-[optim]
-lr = 1e-3
-warmup_steps = 1
-batch_size = 4
-max_steps = 1
-[run]
-bf16 = false
-checkpoint_every = 1
-""")
-    assert main(["train", "denoiser", "--config", str(cfg_d), "--out-dir", str(tmp_path / "den")]) == 0
+    cfg_d = denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=1)
+    assert main(["train", "denoiser", "--config", str(cfg_d), "--out-dir", str(tmp_path / "den"),
+                 "--vae", str(tiny_model / "vae")]) == 0
     # the teacher directory keeps its path while its denoiser is replaced by a newer one
     (other / "denoiser").symlink_to((tiny_model / "denoiser").resolve())
     run = tmp_path / "run"

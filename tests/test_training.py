@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+
+from conftest import denoiser_toml
 import torch.multiprocessing as mp
 
 from salad.models.io import load_vae
@@ -184,38 +186,13 @@ def test_continuing_refuses_a_snapshot_that_is_already_as_far(tiny_dataset, tmp_
         trainer.init_weights(tmp_path / "first" / "model", carry_step=True)
 
 
-def _denoiser_toml(path: Path, root: Path, steps: int) -> Path:
-    path.write_text(f"""vae = "does/not/exist"
-[data]
-root = "{root}"
-max_frames = 40
-[model]
-latent_dim = 8
-dim = 32
-heads = 4
-ff_dim = 64
-layers = 3
-text_dim = 384
-[optim]
-lr = 1e-3
-warmup_steps = 4
-batch_size = 4
-max_steps = {steps}
-[run]
-bf16 = false
-checkpoint_every = 2
-log_every = 1
-""")
-    return path
-
-
 def test_denoiser_continues_a_snapshot_from_its_step_with_a_rewarm(tiny_model, tiny_dataset, tmp_path):
     from salad.cli import main
     from salad.models.io import load_denoiser
 
     _, before = load_denoiser(tiny_model / "denoiser")
     start = before["meta"]["step"]
-    cfg = _denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=start + 3)
+    cfg = denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=start + 3)
     out = tmp_path / "more"
     assert main(["train", "denoiser", "--config", str(cfg), "--out-dir", str(out), "--vae", str(tiny_model / "vae"),
                  "--continue-from", str(tiny_model / "denoiser")]) == 0
@@ -227,7 +204,7 @@ def test_denoiser_continues_a_snapshot_from_its_step_with_a_rewarm(tiny_model, t
     # a fresh optimiser warms up again from the snapshot's step: 1/4, 2/4, 3/4 of lr
     assert [r["lr"] for r in rows] == pytest.approx([2.5e-4, 5e-4, 7.5e-4])
     # resuming the continued run keeps the re-warm-up where it was
-    _denoiser_toml(cfg, tiny_dataset, steps=start + 5)
+    denoiser_toml(cfg, tiny_dataset, steps=start + 5)
     assert main(["train", "denoiser", "--config", str(cfg), "--out-dir", str(out), "--vae", str(tiny_model / "vae"),
                  "--continue-from", str(tiny_model / "denoiser")]) == 0
     rows = [json.loads(l) for l in (out / "log.jsonl").read_text().splitlines()]
@@ -238,7 +215,7 @@ def test_denoiser_init_from_refuses_another_vaes_latents(tiny_model, tiny_datase
     from salad.cli import main
 
     fit(vae_config(tiny_dataset, tmp_path / "other-vae", steps=1, every=1))
-    cfg = _denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=100)
+    cfg = denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=100)
     assert main(["train", "denoiser", "--config", str(cfg), "--out-dir", str(tmp_path / "x"),
                  "--vae", str(tmp_path / "other-vae" / "model"), "--init-from", str(tiny_model / "denoiser")]) == 2
     assert "another VAE" in capsys.readouterr().err
