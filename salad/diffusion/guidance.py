@@ -132,6 +132,12 @@ def network_evaluations(steps: int, repeats: Callable[[int, int], int] | int = d
     return sum(max(1, int(rep(i, steps))) for i in range(steps))
 
 
+def _check_counts(gradient_steps, refine_steps) -> None:
+    for name, v in (("gradient_steps", gradient_steps), ("refine_steps", refine_steps)):
+        if not isinstance(v, int) or v < 0:
+            raise ValueError(f"{name} must be a non-negative integer, got {v!r}")
+
+
 def guided_sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, loss_fn: Callable,
                   steps: int = 50, cfg_scale: float = 7.5, strength: float = 1.0,
                   repeats: Callable[[int, int], int] | int = default_repeats,
@@ -148,9 +154,7 @@ def guided_sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, 
     called with the step index before every network evaluation, so that attention
     controllers can count steps when time travel evaluates a step several times.
     """
-    for name, v in (("gradient_steps", gradient_steps), ("refine_steps", refine_steps)):
-        if not isinstance(v, int) or v < 0:
-            raise ValueError(f"{name} must be a non-negative integer, got {v!r}")
+    _check_counts(gradient_steps, refine_steps)
     sched = schedule.sampler("ddim", steps)
     ts = [int(t) for t in sched.timesteps]
     abar = schedule.alphas_cumprod
@@ -197,9 +201,7 @@ def guided_consistency_sample(model: ModelFn, noise: torch.Tensor, schedule: Noi
     timestep) before it is re-noised, then the final latent is refined as in guided_sample.
     `model` gets one row per motion (guidance is the student's input). There is no time travel:
     a step is one clean estimate already."""
-    for name, v in (("gradient_steps", gradient_steps), ("refine_steps", refine_steps)):
-        if not isinstance(v, int) or v < 0:
-            raise ValueError(f"{name} must be a non-negative integer, got {v!r}")
+    _check_counts(gradient_steps, refine_steps)
 
     def on_clean(t: int, z0: torch.Tensor) -> torch.Tensor:
         rho = step_size(t, strength, schedule.config.train_steps)

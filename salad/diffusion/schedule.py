@@ -13,7 +13,6 @@ import torch
 from diffusers import DDIMScheduler, DDPMScheduler, DPMSolverMultistepScheduler, LCMScheduler
 
 SAMPLERS = ("ddim", "dpm", "consistency")
-TEACHER_SAMPLERS = ("ddim", "dpm")
 # The student is distilled along the teacher's 50-step DDIM grid; it samples on that grid.
 CONSISTENCY_GRID = 50
 
