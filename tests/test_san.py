@@ -148,3 +148,41 @@ def test_lambda_zero_trains_no_discriminator(tiny_model, tiny_dataset, tmp_path)
     assert all(torch.equal(v, disc0[k]) for k, v in task.model.disc.state_dict().items())
     with pytest.raises(ValueError, match="lambda_adv"):
         VAESANTask(_san_cfg(tiny_dataset, tiny_model / "vae", tmp_path / "bad", lam=-1.0))
+
+
+def test_planted_foot_error_counts_sliding_where_the_real_foot_is_planted_only(tiny_dataset):
+    import numpy as np
+
+    from salad.motion import representation as rep
+    from salad.training.foot_loss import planted_foot_error
+
+    norm = rep.Normalizer(np.load(tiny_dataset / "Mean.npy"), np.load(tiny_dataset / "Std.npy"))
+    f = np.load(tiny_dataset / "new_joint_vecs" / "000000.npy").astype(np.float64)
+    as_batch = lambda x: torch.from_numpy(norm.normalize(x)).float()[None]
+    valid = torch.ones(1, len(f), dtype=torch.bool)
+    planted = f[:-1, rep.CONTACT_SLICE] > 0.5
+    assert planted.any() and not planted.all()          # a walk: feet plant and swing
+
+    assert float(planted_foot_error(as_batch(f), as_batch(f), valid, norm)) == pytest.approx(0.0, abs=1e-6)
+    # the whole body drifting sideways at 0.2 m/s: every foot slides by (0.2 m/s)^2 where it should stand
+    slid = f.copy()
+    slid[:, 1] += 0.2 / rep.FPS
+    assert float(planted_foot_error(as_batch(slid), as_batch(f), valid, norm)) == pytest.approx(0.04, rel=0.02)
+    # with no planted frame in the real motion there is nothing to count
+    real_no_contact = f.copy()
+    real_no_contact[:, rep.CONTACT_SLICE] = 0.0
+    assert float(planted_foot_error(as_batch(slid), as_batch(real_no_contact), valid, norm)) == 0.0
+    # frames past a motion's end (valid = False) are not counted either
+    assert float(planted_foot_error(as_batch(slid), as_batch(f), torch.zeros_like(valid), norm)) == 0.0
+
+
+def test_the_foot_term_joins_the_decoders_loss(tiny_model, tiny_dataset, tmp_path):
+    cfg = _san_cfg(tiny_dataset, tiny_model / "vae", tmp_path / "foot", steps=1, lam=0.0)
+    cfg.lambda_foot = 2.0
+    task = VAESANTask(cfg)
+    trainer = Trainer(task, task.cfg.optim, task.cfg.run)
+    logs = trainer.step(task.batch(trainer.rng))
+    assert logs["foot"] > 0 and logs["loss"] == pytest.approx(logs["rec_total"] + 2.0 * logs["foot"], rel=1e-5)
+    cfg.lambda_foot = -1.0
+    with pytest.raises(ValueError, match="lambda_foot"):
+        VAESANTask(cfg)

@@ -24,7 +24,9 @@ from ..data.dataset import MotionDataset, WindowSampler
 from ..models.discriminator import SANDiscriminator, san_discriminator_loss, san_generator_loss
 from ..models.io import load_vae, save_vae, vae_latent_sources
 from ..models.vae import MotionVAE
+from ..motion.representation import Normalizer
 from .configs import VAESANTrainConfig
+from .foot_loss import planted_foot_error
 
 ENCODER_PARTS = ("joint_in", "enc22", "pool1", "enc12", "pool2", "to_dist")
 
@@ -41,11 +43,15 @@ def encoder_state(vae: MotionVAE) -> dict[str, torch.Tensor]:
 class AdversarialVAETraining(nn.Module):
     """forward(batch) -> (loss, logs) for the Trainer; encoder frozen and always in eval mode."""
 
-    def __init__(self, vae: MotionVAE, discriminator: SANDiscriminator, lambda_adv: float):
+    def __init__(self, vae: MotionVAE, discriminator: SANDiscriminator, lambda_adv: float,
+                 lambda_foot: float = 0.0, normalizer: Normalizer | None = None):
         super().__init__()
-        if lambda_adv < 0:
-            raise ValueError(f"lambda_adv must be >= 0, got {lambda_adv}")
+        if lambda_adv < 0 or lambda_foot < 0:
+            raise ValueError(f"lambda_adv and lambda_foot must be >= 0, got {lambda_adv} and {lambda_foot}")
+        if lambda_foot > 0 and normalizer is None:
+            raise ValueError("lambda_foot > 0 needs the VAE's normalizer (the loss works in metres)")
         self.vae, self.disc, self.lambda_adv = vae, discriminator, float(lambda_adv)
+        self.lambda_foot, self.normalizer = float(lambda_foot), normalizer
         for m in encoder_modules(vae):
             m.requires_grad_(False)
 
@@ -62,6 +68,10 @@ class AdversarialVAETraining(nn.Module):
         valid = act > 0.5
         total, logs, recon, _ = self.vae.loss(x, act, valid=valid, eps=batch["eps"])
         logs["rec_total"] = logs.pop("total")
+        if self.lambda_foot > 0:
+            foot = planted_foot_error(recon, x, valid, self.normalizer)
+            total = total + self.lambda_foot * foot
+            logs["foot"] = float(foot.detach())
         if self.lambda_adv > 0:
             mask = self.disc.patch_mask(valid)
             frozen = {k: v.detach() for k, v in self.disc.named_parameters()}
@@ -70,7 +80,8 @@ class AdversarialVAETraining(nn.Module):
                                                     self.disc.san_logits(recon.detach(), valid), mask)
             total = total + self.lambda_adv * g_adv + d_loss
             logs.update(d_logs, g_adv=float(g_adv.detach()), d_loss=float(d_loss.detach()))
-        logs["loss"] = logs["rec_total"] + self.lambda_adv * logs.get("g_adv", 0.0)
+        logs["loss"] = (logs["rec_total"] + self.lambda_adv * logs.get("g_adv", 0.0)
+                        + self.lambda_foot * logs.get("foot", 0.0))
         return total, logs
 
 
@@ -93,7 +104,8 @@ class VAESANTask:
                              f"the data has {self.normalizer.dim} dims")
         self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang)
         torch.manual_seed(cfg.run.seed)
-        self.model = AdversarialVAETraining(vae, SANDiscriminator(cfg.discriminator), cfg.lambda_adv)
+        self.model = AdversarialVAETraining(vae, SANDiscriminator(cfg.discriminator), cfg.lambda_adv,
+                                            cfg.lambda_foot, self.normalizer)
 
     def batch(self, rng: np.random.Generator) -> dict:
         b = self.sampler.batch(self.cfg.optim.batch_size, rng)
