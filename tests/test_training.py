@@ -384,3 +384,42 @@ def test_a_run_saved_before_a_config_field_existed_resumes_at_its_default(tiny_m
     cfg.data.balance, cfg.optim.max_steps = 0.5, 4                  # a changed recipe is still refused
     with pytest.raises(ValueError, match=r"different config \(differs in \['data'\]\)"):
         Trainer(DenoiserTask(cfg, show_progress=False), cfg.optim, cfg.run).fit()
+
+
+def test_the_denoisers_contact_loss_holds_decoded_feet_to_the_real_ones(tiny_model, tiny_dataset, tmp_path):
+    from salad.config import ConfigError
+    from salad.diffusion.schedule import DiffusionConfig
+    from salad.models.denoiser import DenoiserConfig
+    from salad.training.configs import DenoiserTrainConfig
+    from salad.training.denoiser_task import DenoiserTask
+
+    def config(weight, auto):
+        return DenoiserTrainConfig(
+            data=DataConfig(root=str(tiny_dataset), max_frames=80), contact_loss=weight, auto_length_prob=auto,
+            model=DenoiserConfig(latent_dim=8, dim=32, heads=4, ff_dim=64, layers=3, text_dim=384),
+            diffusion=DiffusionConfig(), optim=OptimConfig(batch_size=4, warmup_steps=1, max_steps=1),
+            run=RunConfig(out_dir=str(tmp_path / f"run{weight}{auto}"), bf16=False))
+
+    for auto in (0.0, 1.0):
+        cfg = config(0.5, auto)
+        cfg.vae = str(tiny_model / "vae")
+        task = DenoiserTask(cfg, show_progress=False)
+        trainer = Trainer(task, cfg.optim, cfg.run)
+        batch = task.batch(np.random.default_rng(0))
+        # the real motions ride along, normalised, frame for frame with the latents
+        assert batch["features"].shape[:2] == batch["valid"].shape == (4, 4 * batch["latents"].shape[1])
+        real_contacts = task.normalizer.denormalize(batch["features"])[..., 259:263]
+        assert ((real_contacts > 0.5) & batch["valid"][..., None]).any()
+        loss, logs = task.loss(task.model, batch)
+        assert logs["foot"] > 0 and float(loss) == pytest.approx(logs["loss"] + 0.5 * logs["foot"], rel=1e-4)
+        # the term reaches the denoiser through the decoder, and the frozen VAE learns nothing
+        _, _, x0 = task.model(batch)
+        task.foot_error(x0, batch).backward()
+        assert all(p.grad is None for p in task.vae.parameters())
+        assert sum(float(p.grad.abs().sum()) for p in task.model.parameters() if p.grad is not None) > 0
+        task.model.zero_grad(set_to_none=True)
+        trainer.step(batch)
+    cfg = config(-1.0, 0.0)
+    cfg.vae = str(tiny_model / "vae")
+    with pytest.raises(ConfigError, match="contact_loss"):
+        DenoiserTask(cfg, show_progress=False)

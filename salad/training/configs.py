@@ -66,6 +66,9 @@ class DenoiserTrainConfig:
     text_dropout: float = 0.1     # probability of training on the empty prompt (for CFG)
     auto_length_prob: float = 0.5 # share of samples drawn on the full canvas with an activation tail
     ema_decay: float = 0.999
+    # weight of the planted feet's world-velocity error of the decoded clean estimate (m/s)^2
+    # (training/foot_loss.py); 0 = off
+    contact_loss: float = 0.0
 
 
 @dataclass

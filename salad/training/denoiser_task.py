@@ -6,6 +6,11 @@ padding whose activation channel is 0), chosen per batch. One model thus learns 
 to fill a requested duration and to decide a duration itself (MoLA). Latents are samples
 of the frozen VAE's posterior: encoded at first use for motions that fit the canvas, at
 every use for random windows of longer ones.
+
+With contact_loss > 0 the clean-latent estimate is also decoded by the frozen VAE and its
+planted feet are held to the real motion's (training/foot_loss.py), weighted per sample by the
+signal share at t: at high noise the estimate is a blur of many motions, and pinning its feet
+there would fight the diffusion objective.
 """
 from __future__ import annotations
 
@@ -27,6 +32,7 @@ from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum, va
 from ..models.text import load_text_encoder
 from ..models.text_bank import TextBank
 from .configs import DenoiserTrainConfig
+from .foot_loss import planted_foot_error
 
 
 class DenoiserTraining(nn.Module):
@@ -36,6 +42,7 @@ class DenoiserTraining(nn.Module):
         self.schedule = schedule
 
     def forward(self, batch: dict):
+        """(loss, logs, the clean-latent estimate)."""
         z0 = batch["latents"]
         t = batch["timesteps"]
         noise = batch["noise"]
@@ -49,7 +56,8 @@ class DenoiserTraining(nn.Module):
             loss = (err * w).sum() / w.sum().clamp_min(1.0)
         else:
             loss = err.mean()
-        return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}
+        x0, _ = self.schedule.to_x0_eps(zt.float(), pred.float(), t)
+        return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}, x0
 
 
 def class_weights(dataset: MotionDataset, balance: float) -> np.ndarray | None:
@@ -108,6 +116,8 @@ class DenoiserTask:
         self.schedule = NoiseSchedule(cfg.diffusion)
         torch.manual_seed(cfg.run.seed)
         self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule)
+        if cfg.contact_loss < 0:
+            raise ConfigError(f"contact_loss must be >= 0, got {cfg.contact_loss}")
 
     # ------------------------------------------------------------ batches
     def _canvas(self, crops: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -175,13 +185,29 @@ class DenoiserTask:
         captions = ["" if d else c for c, d in zip(captions, drop)]
         text, text_mask, pooled = self.text.batch(captions)
         g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
-        return {"latents": latents, "frame_mask": frame_mask, "text": text, "text_mask": text_mask,
+        extra = {}
+        if self.cfg.contact_loss > 0:
+            # the real motions, normalised, on the rows' frames (what the decoded estimate is held to)
+            feats, act = self._canvas([self.normalizer.normalize(c[:T]) for c in crops])
+            extra = {"features": feats[:, :T], "valid": act[:, :T] > 0.5}
+        return {**extra, "latents": latents, "frame_mask": frame_mask, "text": text, "text_mask": text_mask,
                 "pooled": pooled, "auto": torch.full((B,), auto),
                 "timesteps": torch.randint(0, self.schedule.config.train_steps, (B,), generator=g),
                 "noise": torch.randn(latents.shape, generator=g)}
 
     def loss(self, model: nn.Module, batch: dict):
-        return model(batch)
+        loss, logs, x0 = model(batch)
+        if self.cfg.contact_loss > 0:
+            feet = self.foot_error(x0, batch)
+            logs["foot"] = float(feet.detach())
+            loss = loss + self.cfg.contact_loss * feet
+        return loss, logs
+
+    def foot_error(self, x0: torch.Tensor, batch: dict) -> torch.Tensor:
+        """planted_foot_error of the decoded clean estimates, each row weighted by alpha_bar(t)."""
+        recon, _ = self.vae.to(x0.device).decode(x0 / self.latent_scale)
+        signal = self.schedule.alphas_cumprod.to(x0.device)[batch["timesteps"].long()].float()
+        return planted_foot_error(recon, batch["features"], batch["valid"], self.normalizer, weights=signal)
 
     def config_dict(self) -> dict:
         return to_dict(self.cfg)

@@ -20,13 +20,16 @@ def foot_velocities(features: torch.Tensor) -> torch.Tensor:
 
 
 def planted_foot_error(recon: torch.Tensor, real: torch.Tensor, valid: torch.Tensor,
-                       normalizer: rep.Normalizer) -> torch.Tensor:
+                       normalizer: rep.Normalizer, weights: torch.Tensor | None = None) -> torch.Tensor:
     """recon, real: normalised features (B, T, 263); valid (B, T) bool. Mean squared velocity
-    error over the (frame, foot joint) pairs where the real motion's contact channel is set."""
+    error over the (frame, foot joint) pairs where the real motion's contact channel is set;
+    weights (B,) weigh each row's pairs."""
     with torch.autocast(recon.device.type, enabled=False):
         r = normalizer.denormalize(recon.float())
         x = normalizer.denormalize(real.float())
         err = (foot_velocities(r) - foot_velocities(x)).pow(2).sum(-1)            # (B, T-1, 4)
         planted = (x[:, :-1, rep.CONTACT_SLICE] > 0.5) & (valid[:, :-1] & valid[:, 1:])[..., None]
         planted = planted.float()
+        if weights is not None:
+            planted = planted * weights.float().view(-1, 1, 1)
         return (err * planted).sum() / planted.sum().clamp_min(1.0)
