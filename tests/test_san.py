@@ -186,3 +186,33 @@ def test_the_foot_term_joins_the_decoders_loss(tiny_model, tiny_dataset, tmp_pat
     cfg.lambda_foot = -1.0
     with pytest.raises(ValueError, match="lambda_foot"):
         VAESANTask(cfg)
+
+
+def test_eval_vae_measures_pose_error_and_feet_for_each_vae(tiny_model, tiny_dataset, tmp_path, capsys):
+    import numpy as np
+
+    from salad.cli import main
+    from salad.eval.physics import still_foot_share
+    from salad.motion import representation as rep
+
+    root = tmp_path / "labelled"
+    shutil.copytree(tiny_dataset, root)
+    test = (root / "test.txt").read_text().split()
+    labels = {n: {"content": "walk", "style": "normal", "mirrored": False, "split": "test"} for n in test}
+    (root / "labels.json").write_text(json.dumps(labels))
+    vae = str(tiny_model / "vae")
+    assert main(["eval-vae", "--data", str(root), "--vae", vae, "--vae", vae, "--out", str(tmp_path / "out")]) == 0
+    doc = json.loads((tmp_path / "out" / "results.json").read_text())
+    a, b = doc["rows"]
+    assert a == {**b, "seconds": a["seconds"]}                  # same VAE, same seed: same numbers
+    assert a["walking_clips"] == a["locomotion_clips"] == len(test)
+    feats = [np.load(root / "new_joint_vecs" / f"{n}.npy") for n in test]
+    real = [still_foot_share(rep.features_to_joints(f[: len(f) // 4 * 4].astype(np.float64))) for f in feats]
+    assert a["walk_still_real"] == pytest.approx(float(np.mean(real)))
+    assert a["pose_error_m"] > 0 and 0 <= a["walk_still_mean"] <= 1 and 0 <= a["slide_mean"] <= 1
+    assert "| pose error (cm) |" in capsys.readouterr().out
+    labels = {n: {**v, "content": "wave-left-hand"} for n, v in labels.items()}
+    (root / "labels.json").write_text(json.dumps(labels))
+    assert main(["eval-vae", "--data", str(root), "--vae", vae, "--out", str(tmp_path / "out2")]) != 0
+    assert "no walking clips" in capsys.readouterr().err
+    assert not (tmp_path / "out2" / "results.json").exists()

@@ -1,5 +1,5 @@
 """`salad eval` (the T2M protocol) and the benchmarks `salad eval-control`, `eval-edit`,
-`eval-fidelity`, `eval-length` and `eval-real-edit`."""
+`eval-fidelity`, `eval-length`, `eval-real-edit` and `eval-vae`."""
 from __future__ import annotations
 
 import argparse
@@ -313,4 +313,31 @@ def cmd_eval_real_edit(a) -> int:
                         methods=_csv(a.methods), edit_methods=_csv(a.edit_methods), steps=a.steps, cfg=a.cfg,
                         strengths=_csv(a.sdedit, float), seed=a.seed, uncorrected=a.uncorrected)
     print((Path(a.out) / "report.md").read_text())
+    return 0
+
+
+def add_eval_vae(sub) -> None:
+    p = sub.add_parser("eval-vae", help="VAE reconstruction: pose error and what the decoder does to the feet")
+    p.add_argument("--data", required=True, help="labelled HumanML3D-layout dataset (labels.json)")
+    p.add_argument("--vae", action="append", default=[],
+                   help="VAE checkpoint directory; repeatable (default: the embedded model's)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--out", required=True, help="directory for results.json and report.md")
+    p.set_defaults(func=cmd_eval_vae)
+
+
+def cmd_eval_vae(a) -> int:
+    import torch
+    from ..eval.vae_feet import evaluate_vae, write_vae_report
+    from ..pipeline import EMBEDDED_MODEL
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    results = []
+    for vae in a.vae or [str(EMBEDDED_MODEL / "vae")]:
+        bar, update = progress_bar(f"{Path(vae).name}")
+        results.append(evaluate_vae(vae, a.data, split=a.split, seed=a.seed, progress=update))
+        bar.close()
+    print(write_vae_report(results, a.out, a.split).read_text())
     return 0
