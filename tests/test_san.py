@@ -154,7 +154,7 @@ def test_planted_foot_error_counts_sliding_where_the_real_foot_is_planted_only(t
     import numpy as np
 
     from salad.motion import representation as rep
-    from salad.training.foot_loss import planted_foot_error
+    from salad.training.foot_loss import planted_foot_error, velocity_errors
 
     norm = rep.Normalizer(np.load(tiny_dataset / "Mean.npy"), np.load(tiny_dataset / "Std.npy"))
     f = np.load(tiny_dataset / "new_joint_vecs" / "000000.npy").astype(np.float64)
@@ -168,6 +168,12 @@ def test_planted_foot_error_counts_sliding_where_the_real_foot_is_planted_only(t
     slid = f.copy()
     slid[:, 1] += 0.2 / rep.FPS
     assert float(planted_foot_error(as_batch(slid), as_batch(f), valid, norm)) == pytest.approx(0.04, rel=0.02)
+    # the root drifts with it, on every frame: the root term sees the same (0.2 m/s)^2
+    assert float(velocity_errors(as_batch(slid), as_batch(f), valid, norm)["root"]) == pytest.approx(0.04, rel=0.02)
+    # a row weighted 0 counts for nothing
+    two = velocity_errors(torch.cat((as_batch(slid), as_batch(f))), torch.cat((as_batch(f), as_batch(f))),
+                          torch.cat((valid, valid)), norm, weights=torch.tensor([0.0, 1.0]))
+    assert float(two["foot"]) == pytest.approx(0.0, abs=1e-6) and float(two["root"]) == pytest.approx(0.0, abs=1e-6)
     # with no planted frame in the real motion there is nothing to count
     real_no_contact = f.copy()
     real_no_contact[:, rep.CONTACT_SLICE] = 0.0
@@ -178,11 +184,12 @@ def test_planted_foot_error_counts_sliding_where_the_real_foot_is_planted_only(t
 
 def test_the_foot_term_joins_the_decoders_loss(tiny_model, tiny_dataset, tmp_path):
     cfg = _san_cfg(tiny_dataset, tiny_model / "vae", tmp_path / "foot", steps=1, lam=0.0)
-    cfg.lambda_foot = 2.0
+    cfg.lambda_foot, cfg.lambda_root = 2.0, 3.0
     task = VAESANTask(cfg)
     trainer = Trainer(task, task.cfg.optim, task.cfg.run)
     logs = trainer.step(task.batch(trainer.rng))
-    assert logs["foot"] > 0 and logs["loss"] == pytest.approx(logs["rec_total"] + 2.0 * logs["foot"], rel=1e-5)
+    assert logs["foot"] > 0 and logs["root_vel"] > 0
+    assert logs["loss"] == pytest.approx(logs["rec_total"] + 2.0 * logs["foot"] + 3.0 * logs["root_vel"], rel=1e-5)
     cfg.lambda_foot = -1.0
     with pytest.raises(ValueError, match="lambda_foot"):
         VAESANTask(cfg)
@@ -210,6 +217,7 @@ def test_eval_vae_measures_pose_error_and_feet_for_each_vae(tiny_model, tiny_dat
     real = [still_foot_share(rep.features_to_joints(f[: len(f) // 4 * 4].astype(np.float64))) for f in feats]
     assert a["walk_still_real"] == pytest.approx(float(np.mean(real)))
     assert a["pose_error_m"] > 0 and 0 <= a["walk_still_mean"] <= 1 and 0 <= a["slide_mean"] <= 1
+    assert a["speed_ratio"] > 0
     assert "| pose error (cm) |" in capsys.readouterr().out
     labels = {n: {**v, "content": "wave-left-hand"} for n, v in labels.items()}
     (root / "labels.json").write_text(json.dumps(labels))

@@ -6,7 +6,9 @@ denoiser's training latents are drawn), and the reconstruction is measured where
 * pose error: mean joint distance (root-aligned, metres) to the real motion;
 * still-foot share on walking clips (a toe standing still, physics.still_foot_share): real
   walking keeps one foot planted almost always, so this drops where a decoder makes feet slide;
-* contact-slide share on locomotion clips (a touching toe sliding, physics.contact_slide_share).
+* contact-slide share on locomotion clips (a touching toe sliding, physics.contact_slide_share);
+* speed ratio on locomotion clips: the reconstruction's mean horizontal root speed over the real
+  one's (a decoder can plant the feet by slowing the whole walk down).
 
     salad eval-vae --data data/bandai-hml --vae assets/model/vae [--vae OTHER ...] --out DIR
 """
@@ -38,6 +40,10 @@ def _is_locomotion(content: str) -> bool:
     return content.startswith(LOCOMOTION)
 
 
+def _root_speed(joints: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(joints[:, 0, [0, 2]], axis=0), axis=-1).mean() * rep.FPS)
+
+
 def _reconstruct(vae, norm, features: np.ndarray, sample: bool, generator: torch.Generator) -> np.ndarray:
     x = torch.from_numpy(norm.normalize(features)).float()[None]
     with torch.no_grad():
@@ -55,7 +61,8 @@ def evaluate_vae(vae_dir: str | Path, data_root: str | Path, split: str = "test"
     ds = MotionDataset(data_root, split, min_frames=16, max_frames=max_frames, normalizer=norm)
     g = torch.Generator().manual_seed(seed)
     rows: dict[str, list[float]] = {k: [] for k in ("pose_error_m", "walk_still_real", "walk_still_mean",
-                                                     "walk_still_sample", "slide_real", "slide_mean")}
+                                                     "walk_still_sample", "slide_real", "slide_mean",
+                                                     "speed_ratio")}
     t0 = time.time()
     for i, it in enumerate(ds.items):
         f = it.features[: len(it.features) // 4 * 4].astype(np.float64)
@@ -70,6 +77,7 @@ def evaluate_vae(vae_dir: str | Path, data_root: str | Path, split: str = "test"
         if lab is not None and _is_locomotion(lab.content):
             rows["slide_real"].append(contact_slide_share(real))
             rows["slide_mean"].append(contact_slide_share(mean))
+            rows["speed_ratio"].append(_root_speed(mean) / max(_root_speed(real), 1e-6))
         if progress:
             progress(i + 1, len(ds.items))
     if not rows["walk_still_real"]:
@@ -83,14 +91,15 @@ def report_markdown(results: list[dict[str, Any]], split: str) -> str:
     lines = [f"# VAE reconstruction and the feet ({split} split)", "",
              "Pose error: mean root-aligned joint distance of the posterior-mean reconstruction. Still-foot share: "
              "frames with a toe under 0.2 m/s, on walking clips. Contact slide: frames where a touching toe slides "
-             "faster than 0.5 m/s, on walk / run / dash clips. 'sample' decodes one posterior sample, as the "
-             "denoiser's training latents are drawn.", "",
-             "| VAE | pose error (cm) | still feet: real / mean / sample | contact slide: real / mean |",
-             "|---|---|---|---|"]
+             "faster than 0.5 m/s, on walk / run / dash clips. Speed: mean root speed of the reconstruction over "
+             "the real one's, on the same clips. 'sample' decodes one posterior sample, as the denoiser's training "
+             "latents are drawn.", "",
+             "| VAE | pose error (cm) | still feet: real / mean / sample | contact slide: real / mean | speed |",
+             "|---|---|---|---|---|"]
     for r in results:
         lines.append(f"| `{r['vae']}` | {100 * r['pose_error_m']:.2f} | {r['walk_still_real']:.3f} / "
                      f"{r['walk_still_mean']:.3f} / {r['walk_still_sample']:.3f} | {r['slide_real']:.3f} / "
-                     f"{r['slide_mean']:.3f} |")
+                     f"{r['slide_mean']:.3f} | {r['speed_ratio']:.3f} |")
     r = results[0]
     lines += ["", f"{r['clips']} clips, of which {r['walking_clips']} walking and {r['locomotion_clips']} locomotion."]
     return "\n".join(lines) + "\n"

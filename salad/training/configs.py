@@ -77,8 +77,9 @@ class VAESANTrainConfig:
     frozen, so a denoiser trained on `vae`'s latents works with the result."""
     vae: str = "assets/model/vae"     # the VAE whose latent space is kept (read only)
     lambda_adv: float = 1e-3          # MoLA's weight of the adversarial term; 0 = plain fine-tuning
-    # weight of the planted feet's world-velocity error, (m/s)^2 (training/foot_loss.py); 0 = off
+    # weights of the planted feet's and of the root's world-velocity error, (m/s)^2 (training/foot_loss.py); 0 = off
     lambda_foot: float = 0.0
+    lambda_root: float = 0.0
     data: DataConfig = field(default_factory=DataConfig)
     discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, warmup_steps=100, grad_clip=0.0))

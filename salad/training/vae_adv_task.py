@@ -26,7 +26,7 @@ from ..models.io import load_vae, save_vae, vae_latent_sources
 from ..models.vae import MotionVAE
 from ..motion.representation import Normalizer
 from .configs import VAESANTrainConfig
-from .foot_loss import planted_foot_error
+from .foot_loss import velocity_errors
 
 ENCODER_PARTS = ("joint_in", "enc22", "pool1", "enc12", "pool2", "to_dist")
 
@@ -44,14 +44,15 @@ class AdversarialVAETraining(nn.Module):
     """forward(batch) -> (loss, logs) for the Trainer; encoder frozen and always in eval mode."""
 
     def __init__(self, vae: MotionVAE, discriminator: SANDiscriminator, lambda_adv: float,
-                 lambda_foot: float = 0.0, normalizer: Normalizer | None = None):
+                 lambda_foot: float = 0.0, normalizer: Normalizer | None = None, lambda_root: float = 0.0):
         super().__init__()
-        if lambda_adv < 0 or lambda_foot < 0:
-            raise ValueError(f"lambda_adv and lambda_foot must be >= 0, got {lambda_adv} and {lambda_foot}")
-        if lambda_foot > 0 and normalizer is None:
-            raise ValueError("lambda_foot > 0 needs the VAE's normalizer (the loss works in metres)")
+        if min(lambda_adv, lambda_foot, lambda_root) < 0:
+            raise ValueError(f"lambda_adv, lambda_foot and lambda_root must be >= 0, got {lambda_adv}, "
+                             f"{lambda_foot} and {lambda_root}")
+        if (lambda_foot > 0 or lambda_root > 0) and normalizer is None:
+            raise ValueError("lambda_foot and lambda_root need the VAE's normalizer (the terms work in metres)")
         self.vae, self.disc, self.lambda_adv = vae, discriminator, float(lambda_adv)
-        self.lambda_foot, self.normalizer = float(lambda_foot), normalizer
+        self.lambda_foot, self.lambda_root, self.normalizer = float(lambda_foot), float(lambda_root), normalizer
         for m in encoder_modules(vae):
             m.requires_grad_(False)
 
@@ -68,10 +69,12 @@ class AdversarialVAETraining(nn.Module):
         valid = act > 0.5
         total, logs, recon, _ = self.vae.loss(x, act, valid=valid, eps=batch["eps"])
         logs["rec_total"] = logs.pop("total")
-        if self.lambda_foot > 0:
-            foot = planted_foot_error(recon, x, valid, self.normalizer)
-            total = total + self.lambda_foot * foot
-            logs["foot"] = float(foot.detach())
+        kinematic = 0.0
+        if self.lambda_foot > 0 or self.lambda_root > 0:
+            errs = velocity_errors(recon, x, valid, self.normalizer)
+            total = total + self.lambda_foot * errs["foot"] + self.lambda_root * errs["root"]
+            logs.update(foot=float(errs["foot"].detach()), root_vel=float(errs["root"].detach()))
+            kinematic = self.lambda_foot * logs["foot"] + self.lambda_root * logs["root_vel"]
         if self.lambda_adv > 0:
             mask = self.disc.patch_mask(valid)
             frozen = {k: v.detach() for k, v in self.disc.named_parameters()}
@@ -80,8 +83,7 @@ class AdversarialVAETraining(nn.Module):
                                                     self.disc.san_logits(recon.detach(), valid), mask)
             total = total + self.lambda_adv * g_adv + d_loss
             logs.update(d_logs, g_adv=float(g_adv.detach()), d_loss=float(d_loss.detach()))
-        logs["loss"] = (logs["rec_total"] + self.lambda_adv * logs.get("g_adv", 0.0)
-                        + self.lambda_foot * logs.get("foot", 0.0))
+        logs["loss"] = logs["rec_total"] + self.lambda_adv * logs.get("g_adv", 0.0) + kinematic
         return total, logs
 
 
@@ -105,7 +107,7 @@ class VAESANTask:
         self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang)
         torch.manual_seed(cfg.run.seed)
         self.model = AdversarialVAETraining(vae, SANDiscriminator(cfg.discriminator), cfg.lambda_adv,
-                                            cfg.lambda_foot, self.normalizer)
+                                            cfg.lambda_foot, self.normalizer, cfg.lambda_root)
 
     def batch(self, rng: np.random.Generator) -> dict:
         b = self.sampler.batch(self.cfg.optim.batch_size, rng)
