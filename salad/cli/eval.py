@@ -325,6 +325,7 @@ def add_eval_vae(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--out", required=True, help="directory for results.json and report.md")
+    add_device(p)
     p.set_defaults(func=cmd_eval_vae)
 
 
@@ -332,12 +333,13 @@ def cmd_eval_vae(a) -> int:
     import torch
     from ..eval.vae_feet import evaluate_vae, write_vae_report
     from ..pipeline import EMBEDDED_MODEL
+    device = device_of(a)
     if a.threads:
         torch.set_num_threads(a.threads)
     results = []
     for vae in a.vae or [str(EMBEDDED_MODEL / "vae")]:
         bar, update = progress_bar(f"{Path(vae).name}")
-        results.append(evaluate_vae(vae, a.data, split=a.split, seed=a.seed, progress=update))
+        results.append(evaluate_vae(vae, a.data, split=a.split, seed=a.seed, progress=update, device=device))
         bar.close()
     print(write_vae_report(results, a.out, a.split).read_text())
     return 0

@@ -44,19 +44,23 @@ def _root_speed(joints: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(joints[:, 0, [0, 2]], axis=0), axis=-1).mean() * rep.FPS)
 
 
-def _reconstruct(vae, norm, features: np.ndarray, sample: bool, generator: torch.Generator) -> np.ndarray:
-    x = torch.from_numpy(norm.normalize(features)).float()[None]
+def _reconstruct(vae, norm, features: np.ndarray, sample: bool, generator: torch.Generator,
+                 device: torch.device) -> np.ndarray:
+    x = torch.from_numpy(norm.normalize(features)).float()[None].to(device)
     with torch.no_grad():
         mu, logvar = vae.encode(x)
-        z = mu + torch.randn(mu.shape, generator=generator) * torch.exp(0.5 * logvar) if sample else mu
-        out, _ = vae.decode(z)
-    return rep.features_to_joints(norm.denormalize(out[0].double().numpy()))
+        if sample:      # the noise is drawn on the CPU, so a seed gives the same draw on any device
+            mu = mu + torch.randn(mu.shape, generator=generator).to(device) * torch.exp(0.5 * logvar)
+        out, _ = vae.decode(mu)
+    return rep.features_to_joints(norm.denormalize(out[0].double().cpu().numpy()))
 
 
 def evaluate_vae(vae_dir: str | Path, data_root: str | Path, split: str = "test", seed: int = 0,
-                 max_frames: int = 196, progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                 max_frames: int = 196, progress: Callable[[int, int], None] | None = None,
+                 device: str | torch.device = "cpu") -> dict[str, Any]:
+    device = torch.device(device)
     vae, norm, _, _ = load_vae(vae_dir)
-    vae.eval()
+    vae.eval().to(device)
     labels = read_labels(data_root)
     ds = MotionDataset(data_root, split, min_frames=16, max_frames=max_frames, normalizer=norm)
     g = torch.Generator().manual_seed(seed)
@@ -67,13 +71,13 @@ def evaluate_vae(vae_dir: str | Path, data_root: str | Path, split: str = "test"
     for i, it in enumerate(ds.items):
         f = it.features[: len(it.features) // 4 * 4].astype(np.float64)
         real = rep.features_to_joints(f)
-        mean = _reconstruct(vae, norm, f, False, g)
+        mean = _reconstruct(vae, norm, f, False, g, device)
         rows["pose_error_m"].append(float(np.linalg.norm((mean - mean[:, :1]) - (real - real[:, :1]), axis=-1).mean()))
         lab = labels.get(it.name.split("@")[0])
         if lab is not None and _is_walk(lab.content):
             rows["walk_still_real"].append(still_foot_share(real))
             rows["walk_still_mean"].append(still_foot_share(mean))
-            rows["walk_still_sample"].append(still_foot_share(_reconstruct(vae, norm, f, True, g)))
+            rows["walk_still_sample"].append(still_foot_share(_reconstruct(vae, norm, f, True, g, device)))
         if lab is not None and _is_locomotion(lab.content):
             rows["slide_real"].append(contact_slide_share(real))
             rows["slide_mean"].append(contact_slide_share(mean))
