@@ -140,3 +140,11 @@ def test_cli_device_is_checked_first(argv, tmp_path, capsys):
     assert main(args) == 2
     err = capsys.readouterr().err
     assert "no CUDA GPU" in err and "--device cpu" in err, err
+
+
+@no_gpu
+def test_eval_vae_checks_the_device_first(tmp_path, capsys):
+    assert main(["eval-vae", "--data", str(tmp_path / "nowhere"), "--out", str(tmp_path / "out"),
+                 "--device", "cuda"]) == 2
+    err = capsys.readouterr().err
+    assert "no CUDA GPU" in err and "--device cpu" in err, err
