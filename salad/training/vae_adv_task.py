@@ -3,8 +3,9 @@
 The encoder and the latent scale are frozen, so a denoiser trained on the source VAE's latents
 decodes through the fine-tuned decoder unchanged; the exported checkpoint records the source's
 checksum for load_pipeline's compatibility check. The decoder minimises the source VAE's own
-reconstruction loss plus lambda_adv times the SAN generator loss; the discriminator learns
-from the same batch. Both updates come from one backward pass through the shared Trainer
+reconstruction loss plus lambda_adv times the SAN generator loss (plus, where set, lambda_foot and
+lambda_root times the feet's and the root's world-velocity errors: training/foot_loss.py); the
+discriminator learns from the same batch. Both updates come from one backward pass through the shared Trainer
 (exact resume, bf16): the discriminator sees the reconstruction detached, and the decoder's
 adversarial term sees the discriminator's parameters detached, so each loss reaches only
 its own player.
