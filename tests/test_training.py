@@ -411,7 +411,7 @@ def test_the_denoisers_contact_loss_holds_decoded_feet_to_the_real_ones(tiny_mod
         real_contacts = task.normalizer.denormalize(batch["features"])[..., 259:263]
         assert ((real_contacts > 0.5) & batch["valid"][..., None]).any()
         loss, logs = task.loss(task.model, batch)
-        assert logs["foot"] > 0 and float(loss) == pytest.approx(logs["loss"] + 0.5 * logs["foot"], rel=1e-4)
+        assert logs["foot"] > 0 and float(loss.detach()) == pytest.approx(logs["loss"] + 0.5 * logs["foot"], rel=1e-4)
         # the term reaches the denoiser through the decoder, and the frozen VAE learns nothing
         _, _, x0 = task.model(batch)
         task.foot_error(x0, batch).backward()
