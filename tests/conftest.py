@@ -153,6 +153,14 @@ def tiny_model(tiny_dataset, tmp_path_factory) -> Path:
     return model
 
 
+# the [run] table of the tiny training configs: fp32, a checkpoint every 2 steps, a log row every step
+TINY_RUN = """[run]
+bf16 = false
+checkpoint_every = 2
+log_every = 1
+"""
+
+
 def denoiser_toml(path: Path, root: Path, steps: int) -> Path:
     """A tiny denoiser config (its VAE comes from --vae)."""
     path.write_text(f"""vae = "does/not/exist"
@@ -171,11 +179,7 @@ lr = 1e-3
 warmup_steps = 4
 batch_size = 4
 max_steps = {steps}
-[run]
-bf16 = false
-checkpoint_every = 2
-log_every = 1
-""")
+""" + TINY_RUN)
     return path
 
 
@@ -193,11 +197,7 @@ lr = 1e-3
 warmup_steps = 1
 batch_size = 4
 max_steps = {steps}
-[run]
-bf16 = false
-checkpoint_every = 2
-log_every = 1
-""")
+""" + TINY_RUN)
     return path
 
 

@@ -45,14 +45,17 @@ def _root_speed(joints: np.ndarray) -> float:
 
 
 def _reconstruct(vae, norm, features: np.ndarray, sample: bool, generator: torch.Generator,
-                 device: torch.device) -> np.ndarray:
+                 device: torch.device) -> tuple[np.ndarray, np.ndarray | None]:
+    """Joints decoded from the posterior mean, and (with `sample`) from one posterior sample."""
     x = torch.from_numpy(norm.normalize(features)).float()[None].to(device)
+    joints = lambda z: rep.features_to_joints(norm.denormalize(vae.decode(z)[0][0].double().cpu().numpy()))
     with torch.no_grad():
         mu, logvar = vae.encode(x)
-        if sample:      # the noise is drawn on the CPU, so a seed gives the same draw on any device
-            mu = mu + torch.randn(mu.shape, generator=generator).to(device) * torch.exp(0.5 * logvar)
-        out, _ = vae.decode(mu)
-    return rep.features_to_joints(norm.denormalize(out[0].double().cpu().numpy()))
+        if not sample:
+            return joints(mu), None
+        # the noise is drawn on the CPU, so a seed gives the same draw on any device
+        eps = torch.randn(mu.shape, generator=generator).to(device)
+        return joints(mu), joints(mu + eps * torch.exp(0.5 * logvar))
 
 
 def evaluate_vae(vae_dir: str | Path, data_root: str | Path, split: str = "test", seed: int = 0,
@@ -71,13 +74,14 @@ def evaluate_vae(vae_dir: str | Path, data_root: str | Path, split: str = "test"
     for i, it in enumerate(ds.items):
         f = it.features[: len(it.features) // 4 * 4].astype(np.float64)
         real = rep.features_to_joints(f)
-        mean = _reconstruct(vae, norm, f, False, g, device)
-        rows["pose_error_m"].append(float(np.linalg.norm((mean - mean[:, :1]) - (real - real[:, :1]), axis=-1).mean()))
         lab = labels.get(it.name.split("@")[0])
-        if lab is not None and _is_walk(lab.content):
+        walk = lab is not None and _is_walk(lab.content)
+        mean, sampled = _reconstruct(vae, norm, f, walk, g, device)
+        rows["pose_error_m"].append(float(np.linalg.norm((mean - mean[:, :1]) - (real - real[:, :1]), axis=-1).mean()))
+        if walk:
             rows["walk_still_real"].append(still_foot_share(real))
             rows["walk_still_mean"].append(still_foot_share(mean))
-            rows["walk_still_sample"].append(still_foot_share(_reconstruct(vae, norm, f, True, g, device)))
+            rows["walk_still_sample"].append(still_foot_share(sampled))
         if lab is not None and _is_locomotion(lab.content):
             rows["slide_real"].append(contact_slide_share(real))
             rows["slide_mean"].append(contact_slide_share(mean))
