@@ -7,25 +7,26 @@ frame also moves the scene's box) work without frames.
 """
 from __future__ import annotations
 
+import json
+
 COORDS = ("x", "y", "z")
 
 
-def frames_to_restyle_slider(fig):
-    """A figure whose slider animates through frames (each frame holding new coordinates for
-    some traces, and perhaps layout changes such as the scene's ranges) rewritten as one whose
-    slider restyles (updates) those traces and that layout directly, without frames; play/pause
-    buttons, which need frames, are left out and the slider takes their place. Returns a new figure."""
-    import plotly.graph_objects as go
-
-    if not fig.frames or not fig.layout.sliders:
-        return fig
-    # Plain dicts, and no validation on the way back: plotly's per-property checks of a few
-    # hundred slider steps cost about a second, on data plotly itself produced.
-    frames = {f.name: f for f in fig.frames}
-    spec = fig.to_plotly_json()
-    spec.pop("frames", None)
-    layout = spec.get("layout", {})
-    for slider in layout.get("sliders", ()):
+def frames_to_restyle_slider(spec: dict) -> dict:
+    """A plain figure dict (as salad.render.skeleton_figure_spec makes) whose slider animates
+    through frames (each frame holding new coordinates for some traces, and perhaps layout
+    changes such as the scene's ranges) rewritten as one whose slider restyles (updates) those
+    traces and that layout directly, without frames; play/pause buttons, which need frames, are
+    left out and the slider takes their place. Returns a new dict; the input is left as it was
+    (the two share their unchanged parts)."""
+    layout = spec.get("layout") or {}
+    if not spec.get("frames") or not layout.get("sliders"):
+        return spec
+    frames = {f.get("name"): f for f in spec["frames"]}
+    out = {k: v for k, v in spec.items() if k != "frames"}
+    layout = dict(layout)
+    sliders = []
+    for slider in layout["sliders"]:
         steps = []
         for step in slider.get("steps", ()):
             names = step.get("args", [None])[0]
@@ -33,20 +34,29 @@ def frames_to_restyle_slider(fig):
             if step.get("method") != "animate" or frame is None:
                 steps.append(step)
                 continue
-            # Lists, not arrays: plotly would send arrays base64-encoded, which restyle does not decode.
-            update = {k: [_plain(getattr(d, k)) for d in frame.data] for k in COORDS}
-            traces = list(frame.traces) if frame.traces is not None else list(range(len(frame.data)))
-            relayout = _dotted(frame.layout.to_plotly_json()) if frame.layout is not None else {}
+            # as they are: lists (restyle does not decode plotly's base64 arrays)
+            update = {k: [d.get(k) for d in frame["data"]] for k in COORDS}
+            traces = list(frame["traces"]) if frame.get("traces") is not None else list(range(len(frame["data"])))
+            relayout = _dotted(frame.get("layout") or {})
             if relayout:
                 # dotted keys, so that only the ranges change and the user's camera stays
                 steps.append(dict(step, method="update", args=[update, relayout, traces]))
             else:
                 steps.append(dict(step, method="restyle", args=[update, traces]))
-        slider["steps"] = steps
+        sliders.append(dict(slider, steps=steps))
     if layout.pop("updatemenus", None):
-        for slider in layout.get("sliders", ()):
-            slider.update(x=0.0, len=1.0)
-    return go.Figure(spec, _validate=False)
+        sliders = [dict(s, x=0.0, len=1.0) for s in sliders]
+    out["layout"] = layout | {"sliders": sliders}
+    return out
+
+
+def plot_data(spec: dict):
+    """A plain figure dict as gr.Plot takes it: Gradio passes a PlotData through as it is, where
+    it would serialise a go.Figure (plotly's to_json), which costs more than building the dict.
+    NaN is refused rather than sent: it is not JSON, and the browser would show no plot at all."""
+    from gradio.components.plot import PlotData
+
+    return PlotData(type="plotly", plot=json.dumps(spec, allow_nan=False, separators=(",", ":")))
 
 
 def _dotted(spec: dict, prefix: str = "") -> dict:
@@ -58,12 +68,6 @@ def _dotted(spec: dict, prefix: str = "") -> dict:
         else:
             out[f"{prefix}{key}"] = value
     return out
-
-
-def _plain(values):
-    import numpy as np
-
-    return np.asarray(values).tolist() if values is not None else None
 
 
 PELVIS = 0

@@ -22,7 +22,7 @@ import numpy as np
 from salad.motion import skeleton as sk
 
 from . import controls
-from .figures import control_top_view, frames_to_restyle_slider, note_figure
+from .figures import control_top_view, frames_to_restyle_slider, note_figure, plot_data
 from .session import Result, Session
 from .validation import AttentionRequest, ControlRequest, EditRequest, GenerateRequest
 from .workspace import Workspace
@@ -230,10 +230,12 @@ class Studio:
         return full if full is not None else result.files.get("preview", result.files.get("mp4"))
 
     def skeleton_figure(self, result: Result):
-        from salad.render import skeleton_figure
+        """The 3D view, ready for gr.Plot: built and serialised as plain dicts, as plotly's
+        objects (a few hundred validated frames and steps) cost most of a second."""
+        from salad.render import skeleton_figure_spec
 
-        return result.cached(("skeleton",), lambda: frames_to_restyle_slider(
-            skeleton_figure(result.motion.joints, fps=result.motion.fps)))
+        return result.cached(("skeleton",), lambda: plot_data(frames_to_restyle_slider(
+            skeleton_figure_spec(result.motion.joints, fps=result.motion.fps))))
 
     # ------------------------------------------------------------ attention
     def aggregate(self, result: Result, req: AttentionRequest) -> np.ndarray:

@@ -183,11 +183,12 @@ max_steps = {steps}
     return path
 
 
-def consistency_toml(path, data, teacher, steps):
-    """A consistency-distillation config for the tiny model."""
+def consistency_toml(path, data, teacher, steps, extra: str = ""):
+    """A consistency-distillation config for the tiny model (`extra`: more top-level lines)."""
     path.write_text(f"""teacher = "{teacher}"
 guidance_min = 2.0
 guidance_max = 8.0
+{extra}
 [data]
 root = "{data}"
 max_frames = 40

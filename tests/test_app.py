@@ -21,7 +21,7 @@ from gradio_client.exceptions import AppError
 from salad.editing.store import AttentionMaps
 from salad.motion.bvh import load_bvh
 
-from app.figures import frames_to_restyle_slider
+from app.figures import frames_to_restyle_slider, plot_data
 from app.session import KEEP_RESULTS, Result, Session
 from app.studio import Studio, file_stem, word_tint
 from app.ui.handlers import word_choices
@@ -393,21 +393,33 @@ def test_word_tint_scales_a_words_map_onto_joints():
 
 
 def test_restyle_slider_keeps_every_frame():
-    from salad.render import skeleton_figure
+    import gradio as gr
+
+    from salad.render import skeleton_figure_spec
 
     joints = synthetic_walk(30)
-    fig = frames_to_restyle_slider(skeleton_figure(joints))
-    steps = fig.layout.sliders[0].steps
-    assert len(steps) == 30 and not fig.frames and not fig.layout.updatemenus
-    z_up = np.asarray(steps[17].args[0]["z"][0], dtype=float)
+    spec = skeleton_figure_spec(joints)
+    fig = frames_to_restyle_slider(spec)
+    steps = fig["layout"]["sliders"][0]["steps"]
+    assert len(steps) == 30 and not fig.get("frames") and not fig["layout"].get("updatemenus")
+    z_up = np.asarray(steps[17]["args"][0]["z"][0], dtype=float)
     assert np.nanmax(z_up) == pytest.approx(joints[17, :, 1].max(), abs=1e-6)  # plot z is the data's y
     # the box follows the body: the step also moves the scene's ranges, by dotted keys (the camera stays)
-    assert steps[17].method == "update" and list(steps[17].args[2]) == [2]
-    x0, x1 = steps[17].args[1]["scene.xaxis.range"]
+    assert steps[17]["method"] == "update" and list(steps[17]["args"][2]) == [2]
+    x0, x1 = steps[17]["args"][1]["scene.xaxis.range"]
     assert (x0 + x1) / 2 == pytest.approx(joints[17, 0, 2], abs=1e-6)
-    assert set(steps[17].args[1]) == {"scene.xaxis.range", "scene.yaxis.range"}
+    assert set(steps[17]["args"][1]) == {"scene.xaxis.range", "scene.yaxis.range"}
     # without the play button the slider takes the full width
-    assert (fig.layout.sliders[0].x, fig.layout.sliders[0].len) == (0, 1)
+    assert (fig["layout"]["sliders"][0]["x"], fig["layout"]["sliders"][0]["len"]) == (0, 1)
+    # the input spec is left as it was
+    assert len(spec["frames"]) == 30 and spec["layout"]["updatemenus"]
+    assert spec["layout"]["sliders"][0]["steps"][17]["method"] == "animate"
+    # what gr.Plot is given: plotly JSON (no NaN, which is not JSON) that Gradio passes on unchanged
+    data = plot_data(fig)
+    assert data.type == "plotly" and gr.Plot().postprocess(data) is data
+    sent = json.loads(data.plot)
+    assert not sent.get("frames") and len(sent["layout"]["sliders"][0]["steps"]) == 30
+    assert sent["data"][2]["x"][2] is None                                 # a break in the bone polyline
 
 
 def test_file_stems_are_safe():

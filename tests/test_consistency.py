@@ -120,6 +120,79 @@ def test_distillation_trains_resumes_and_exports_with_its_teacher(tiny_student, 
     assert all(np.isfinite(r["loss"]) for r in rows)
 
 
+def test_the_sampler_timesteps_are_those_of_one_to_four_steps():
+    from salad.diffusion.consistency import sampler_timesteps
+
+    s = NoiseSchedule(DiffusionConfig())
+    assert sampler_timesteps(s) == [999, 759, 679, 499, 339, 259]
+    assert sampler_timesteps(s, 2) == [999, 499]
+    with pytest.raises(ValueError, match="descending"):
+        s.sampler("dpm", timesteps=[259, 999])
+    with pytest.raises(ValueError, match="dpm"):
+        s.sampler("ddim", timesteps=[999, 259])
+
+
+def test_the_trajectory_target_is_the_teachers_own_guided_solve(tiny_model):
+    """solve() passes through every sampler timestep, starts from the noise itself, and guides each
+    row at its own scale: a row solved in a batch equals it solved alone."""
+    from salad.models.io import load_denoiser
+    from salad.training.consistency_task import ConsistencyTraining
+
+    teacher, _ = load_denoiser(tiny_model / "denoiser")
+    m = ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "trajectory",
+                            teacher_steps=10).eval()
+    assert set(m.points) <= set(m.solve_timesteps) and m.solve_timesteps[0] == 999
+    g = torch.Generator().manual_seed(0)
+    B, D = 3, teacher.config.text_dim
+    text = torch.randn(B, 4, D, generator=g)
+    batch = {"noise": torch.randn(B, 5, 7, teacher.config.latent_dim, generator=g),
+             "guidance": torch.tensor([1.0, 4.0, 9.0]), "frame_mask": None, "auto": torch.zeros(B, dtype=torch.bool),
+             "text2": torch.cat((torch.zeros(B, 4, D), text)),
+             "text_mask2": torch.cat((torch.zeros(B, 4, dtype=torch.bool), torch.ones(B, 4, dtype=torch.bool))),
+             "pooled2": torch.randn(2 * B, D, generator=g)}
+    batch["pooled2"][:B] = 0
+    states, x0 = m.solve(batch)
+    assert states.shape == (len(m.points), *batch["noise"].shape)
+    assert torch.equal(states[0], batch["noise"])
+    assert not torch.allclose(states[-1], states[0], atol=1e-2)
+    # the scale matters, and each row keeps its own
+    row = {k: (v[[2, B + 2]] if k.endswith("2") else v[[2]]) if isinstance(v, torch.Tensor) else v
+           for k, v in batch.items()}
+    _, alone = m.solve(row)
+    assert torch.allclose(alone[0], x0[2], atol=1e-4)
+    _, other = m.solve(dict(row, guidance=torch.tensor([1.0])))
+    assert not torch.allclose(other[0], x0[2], atol=1e-3)
+
+
+def test_trajectory_distillation_replays_its_solves_and_resumes(tiny_model, tiny_dataset, tmp_path):
+    from salad.cli import main
+    from salad.models.io import load_denoiser
+
+    run = tmp_path / "run"
+    extra = 'target = "trajectory"\nteacher_steps = 6\nreplay = 3\nreplay_buffer = 2'
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=4, extra=extra)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
+    consistency_toml(cfg, tiny_dataset, tiny_model, steps=6, extra=extra)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
+    rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [1, 2, 3, 4, 5, 6]
+    # a solve every third step, and the first step after the resume solves afresh (the buffer is not saved)
+    assert [r["solved"] for r in rows] == [1, 0, 0, 1, 1, 0]
+    assert all(np.isfinite(r["loss"]) for r in rows)
+    student, doc = load_denoiser(run / "model")
+    assert doc["meta"]["train_config"]["target"] == "trajectory" and student.guidance_mlp[-1].weight.abs().sum() > 0
+
+
+def test_distillation_config_errors_are_clear(tiny_model, tiny_dataset, tmp_path, capsys):
+    from salad.cli import main
+
+    for extra, message in (('target = "progressive"', "target must be one of lcd, trajectory"),
+                           ("replay = 0", "replay >= 1")):
+        cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra)
+        assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
+        assert message in capsys.readouterr().err
+
+
 def test_distillation_refuses_a_student_as_teacher_and_a_teacher_flag_elsewhere(tiny_student, tiny_dataset,
                                                                                   tmp_path, capsys):
     from salad.cli import main

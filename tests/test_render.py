@@ -1,3 +1,4 @@
+import json
 import shutil
 import subprocess
 import sys
@@ -11,6 +12,7 @@ from salad.motion import skeleton as sk
 from salad.render import (
     attention_heatmap, attention_overview, attention_png, gl_backend, last_render_stats, render_frames,
     render_side_by_side, render_video, save_frame_strip, save_gif, skeleton_figure,
+    skeleton_figure_spec,
 )
 from salad.render import camera as cam
 from tests.conftest import synthetic_walk
@@ -344,6 +346,15 @@ def test_skeleton_figure(walk):
     assert np.nanmax(zs) == pytest.approx(walk[5, :, 1].max(), abs=1e-5)
     with pytest.raises(ValueError):
         skeleton_figure(walk[:, :3])
+    # The plain spec (what the studio sends) is valid JSON (None, not NaN, at the polyline's breaks)
+    # and passes plotly's validation, which skeleton_figure skips.
+    import plotly.graph_objects as go
+
+    spec = skeleton_figure_spec(walk, fps=20, title="walk")
+    assert json.loads(json.dumps(spec, allow_nan=False))["frames"][5]["name"] == "5"
+    assert go.Figure(spec).to_plotly_json()["layout"]["scene"]["aspectmode"] == "manual"
+    with pytest.raises(ValueError):
+        skeleton_figure_spec(walk, fps=0)
 
 
 def test_skeleton_figure_follows_the_body(walk):

@@ -28,6 +28,13 @@ def grid_timesteps(schedule: NoiseSchedule) -> torch.Tensor:
     return torch.arange(1, CONSISTENCY_GRID + 1) * k - 1
 
 
+def sampler_timesteps(schedule: NoiseSchedule, max_steps: int = 4) -> list[int]:
+    """Every timestep the consistency sampler evaluates the student at, over 1..max_steps steps
+    (descending): 999, 759, 679, 499, 339, 259 for up to 4 steps."""
+    ts = {int(t) for n in range(1, max_steps + 1) for t in schedule.sampler("consistency", n).timesteps}
+    return sorted(ts, reverse=True)
+
+
 def boundary_scalings(schedule: NoiseSchedule, t: torch.Tensor, like: torch.Tensor):
     """(c_skip, c_out) at timesteps t (B,), shaped to broadcast against `like`."""
     sched = schedule.sampler("consistency", 1)

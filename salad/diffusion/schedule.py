@@ -88,8 +88,9 @@ class NoiseSchedule:
             return sa * eps - s1a * x0
         return eps if p == "epsilon" else x0
 
-    def sampler(self, name: str = "ddim", steps: int = 50):
-        """A fresh diffusers scheduler with its timesteps set."""
+    def sampler(self, name: str = "ddim", steps: int = 50, timesteps: list[int] | None = None):
+        """A fresh diffusers scheduler with its timesteps set: `steps` of them spaced as configured,
+        or exactly `timesteps` (descending; "dpm" only)."""
         if name not in SAMPLERS:
             raise ValueError(f"unknown sampler {name!r}; choose one of {', '.join(SAMPLERS)}")
         if not 1 <= int(steps) <= self.config.train_steps:
@@ -105,7 +106,12 @@ class NoiseSchedule:
         else:
             s = DPMSolverMultistepScheduler(**self._common, algorithm_type="dpmsolver++", solver_order=2,
                                             timestep_spacing=spacing, lower_order_final=True)
-        s.set_timesteps(int(steps))
+        if timesteps is None:
+            s.set_timesteps(int(steps))
+        elif name != "dpm" or list(timesteps) != sorted(set(timesteps), reverse=True):
+            raise ValueError(f"explicit timesteps need the dpm sampler and a strictly descending list, got {name!r}")
+        else:
+            s.set_timesteps(timesteps=[int(t) for t in timesteps])
         return s
 
     def to_dict(self) -> dict:

@@ -99,15 +99,32 @@ def _body_boxes(pj: np.ndarray, shown: np.ndarray) -> tuple[np.ndarray, float]:
     return np.stack([centres - half, centres + half], axis=-1), half
 
 
-def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = None,
-                    view: str = "body") -> "go.Figure":
-    """An orbitable 3D skeleton with a frame slider and play/pause; parts coloured, floor
-    drawn, equal aspect. joints: (T, 22, 3) metres, Y up. view "body": a BODY_BOX metre box
-    centred on the root that moves with it from frame to frame (each frame carries its scene
-    ranges), so the body fills the view however far the motion travels; "path": one box
-    around the whole motion."""
-    import plotly.graph_objects as go
+def _polylines(pts: np.ndarray, idx: np.ndarray) -> list[dict]:
+    """Per frame of pts (F, 22, 3), the bone polyline's x, y and z as lists, None at the breaks."""
+    breaks = np.flatnonzero(idx < 0).tolist()
+    coords = pts[:, np.where(idx < 0, 0, idx)].transpose(0, 2, 1).tolist()
+    for frame in coords:
+        for axis in frame:
+            for b in breaks:
+                axis[b] = None
+    return [dict(zip("xyz", frame)) for frame in coords]
 
+
+def _default_template() -> dict | None:
+    """The template go.Figure would fill in: a spec sent to the browser as it is never passes
+    through plotly.py, and without it the page would lose the default look."""
+    import plotly.io as pio
+
+    name = pio.templates.default
+    return pio.templates[name].to_plotly_json() if name else None
+
+
+def skeleton_figure_spec(joints: np.ndarray, fps: float = 20, title: str | None = None,
+                         view: str = "body") -> dict:
+    """skeleton_figure as a plain Plotly figure dict ({"data", "layout", "frames"}) of dicts,
+    lists, strings and numbers, ready for json.dumps (breaks in the polylines are None, not NaN).
+    Building plotly's objects for it, with their per-property validation, takes some thirty
+    times as long, and a page that only needs the figure's JSON has no use for them."""
     from .video import _check_joints
 
     if view not in VIEWS:
@@ -128,8 +145,8 @@ def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = Non
     else:
         centre = (lo + hi) / 2
         half = max(float((hi - lo)[:2].max()) / 2 + 0.4, 1.0)
-        x_rng = [centre[0] - half, centre[0] + half]
-        y_rng = [centre[1] - half, centre[1] + half]
+        x_rng = [float(centre[0]) - half, float(centre[0]) + half]
+        y_rng = [float(centre[1]) - half, float(centre[1]) + half]
         floor_lo, floor_hi = np.array([x_rng[0], y_rng[0]]), np.array([x_rng[1], y_rng[1]])
         z_rng = [0.0, max(float(hi[2]) + 0.2, 2.0)]
 
@@ -144,21 +161,15 @@ def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = Non
     verts = np.concatenate([quad.reshape(-1, 2), np.zeros((len(quad) * 4, 1))], axis=1)
     q = 4 * np.arange(len(quad))
     faces = np.concatenate([np.stack([q, q + 1, q + 2], 1), np.stack([q, q + 2, q + 3], 1)])
-    tile_col = np.where((gx + gy) % 2 == 0, _hex(style.FLOOR_DARK), _hex(style.FLOOR_LIGHT))
-    floor = go.Mesh3d(x=verts[:, 0], y=verts[:, 1], z=verts[:, 2], i=faces[:, 0], j=faces[:, 1],
-                      k=faces[:, 2], facecolor=np.concatenate([tile_col, tile_col]), flatshading=True,
-                      hoverinfo="skip", showlegend=False, name="floor",
-                      lighting=dict(ambient=1.0, diffuse=0.0))
-    path = go.Scatter3d(x=pj[:, 0, 0], y=pj[:, 0, 1], z=np.full(len(pj), 0.005), mode="lines",
-                        line=dict(color="#9aa3ad", width=3), name="root path", hoverinfo="skip")
+    tile_col = np.where((gx + gy) % 2 == 0, _hex(style.FLOOR_DARK), _hex(style.FLOOR_LIGHT)).tolist()
+    floor = dict(type="mesh3d", x=verts[:, 0].tolist(), y=verts[:, 1].tolist(), z=verts[:, 2].tolist(),
+                 i=faces[:, 0].tolist(), j=faces[:, 1].tolist(), k=faces[:, 2].tolist(),
+                 facecolor=tile_col + tile_col, flatshading=True, hoverinfo="skip", showlegend=False,
+                 name="floor", lighting=dict(ambient=1.0, diffuse=0.0))
+    path = dict(type="scatter3d", x=pj[:, 0, 0].tolist(), y=pj[:, 0, 1].tolist(), z=[0.005] * len(pj),
+                mode="lines", line=dict(color="#9aa3ad", width=3), name="root path", hoverinfo="skip")
 
     idx, part = _bone_polyline()
-    is_break = idx < 0
-
-    def xyz(t: int) -> dict:
-        pts = pj[t][np.where(is_break, 0, idx)]
-        pts[is_break] = np.nan
-        return dict(x=pts[:, 0], y=pts[:, 1], z=pts[:, 2])
 
     def box(k: int) -> dict:
         if view != "body":
@@ -168,27 +179,30 @@ def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = Non
 
     # One trace for the whole body, coloured per vertex through a stepped colour scale:
     # frames then only carry coordinates, which keeps building and playing them fast.
-    sizes = np.where(idx == HEAD, 13, 5)
-    body = go.Scatter3d(
-        **xyz(0), mode="lines+markers", name="skeleton", showlegend=False, hoverinfo="skip",
-        line=dict(color=part + 0.5, colorscale=_discrete_colorscale(), cmin=0, cmax=sk.BODY_PARTS.size,
-                  width=9),
-        marker=dict(color=part + 0.5, colorscale=_discrete_colorscale(), cmin=0, cmax=sk.BODY_PARTS.size,
+    colors, sizes = (part + 0.5).tolist(), np.where(idx == HEAD, 13, 5).tolist()
+    body = dict(
+        type="scatter3d", **_polylines(pj[:1], idx)[0], mode="lines+markers", name="skeleton", showlegend=False,
+        hoverinfo="skip",
+        line=dict(color=colors, colorscale=_discrete_colorscale(), cmin=0, cmax=sk.BODY_PARTS.size, width=9),
+        marker=dict(color=colors, colorscale=_discrete_colorscale(), cmin=0, cmax=sk.BODY_PARTS.size,
                     size=sizes, line=dict(width=0)))
-    legend = [go.Scatter3d(x=[None], y=[None], z=[None], mode="markers", name=PART_LABELS[i],
-                           marker=dict(color=_hex(style.PART_COLORS[i]), size=8), hoverinfo="skip")
+    legend = [dict(type="scatter3d", x=[None], y=[None], z=[None], mode="markers", name=PART_LABELS[i],
+                   marker=dict(color=_hex(style.PART_COLORS[i]), size=8), hoverinfo="skip")
               for i in range(sk.BODY_PARTS.size)]
-    fig = go.Figure(data=[floor, path, body] + legend)
-    fig.frames = [go.Frame(data=[dict(type="scatter3d", **xyz(int(t)))], traces=[2], name=str(int(t)), **box(k))
-                  for k, t in enumerate(shown)]
+    frames = [dict(data=[dict(type="scatter3d", **coords)], traces=[2], name=str(t), **box(k))
+              for k, (t, coords) in enumerate(zip(shown.tolist(), _polylines(pj[shown], idx)))]
     frame_ms = 1000.0 * stride / fps
     steps = [dict(method="animate", label=f"{t / fps:.2f}",
-                  args=[[str(int(t))], dict(mode="immediate", frame=dict(duration=0, redraw=True),
-                                            transition=dict(duration=0))]) for t in shown]
-    axis = dict(backgroundcolor=_hex(style.BACKGROUND), tickfont=dict(size=9), title_font=dict(size=11))
+                  args=[[str(t)], dict(mode="immediate", frame=dict(duration=0, redraw=True),
+                                       transition=dict(duration=0))]) for t in shown.tolist()]
+
+    def axis(text: str, rng: list) -> dict:
+        return dict(title=dict(text=text, font=dict(size=11)), range=rng, backgroundcolor=_hex(style.BACKGROUND),
+                    tickfont=dict(size=9))
+
     # closer in the body view: its box holds little more than the body
     eye = dict(x=1.2, y=0.85, z=0.5) if view == "body" else dict(x=1.35, y=0.95, z=0.55)
-    fig.update_layout(
+    layout = dict(
         title=dict(text=title or "", x=0.02, font=dict(family=FONT, size=16)),
         font=dict(family=FONT), paper_bgcolor="white", margin=dict(l=0, r=0, t=40 if title else 10, b=0),
         # Above the scene, wrapping into rows as the width requires; Plotly grows the top margin to fit.
@@ -196,9 +210,9 @@ def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = Non
         legend=dict(orientation="h", y=1.0, x=0.0, xanchor="left", yanchor="bottom",
                     itemclick=False, itemdoubleclick=False, font=dict(size=11)),
         scene=dict(
-            xaxis=dict(title="z (m), forward", range=x_rng, **axis),
-            yaxis=dict(title="x (m), left", range=y_rng, **axis),
-            zaxis=dict(title="y (m), up", range=z_rng, **axis),
+            xaxis=axis("z (m), forward", x_rng),
+            yaxis=axis("x (m), left", y_rng),
+            zaxis=axis("y (m), up", z_rng),
             aspectmode="manual",
             aspectratio=dict(x=1.0, y=1.0, z=(z_rng[1] - z_rng[0]) / (2 * half)),
             camera=dict(eye=eye, up=dict(x=0, y=0, z=1)),
@@ -218,7 +232,23 @@ def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = Non
                       ticklen=6, minorticklen=0, font=dict(size=10),
                       currentvalue=dict(prefix="t = ", suffix=" s", font=dict(size=12)))],
     )
-    return fig
+    template = _default_template()
+    if template is not None:
+        layout["template"] = template
+    return dict(data=[floor, path, body] + legend, layout=layout, frames=frames)
+
+
+def skeleton_figure(joints: np.ndarray, fps: float = 20, title: str | None = None,
+                    view: str = "body") -> "go.Figure":
+    """An orbitable 3D skeleton with a frame slider and play/pause; parts coloured, floor
+    drawn, equal aspect. joints: (T, 22, 3) metres, Y up. view "body": a BODY_BOX metre box
+    centred on the root that moves with it from frame to frame (each frame carries its scene
+    ranges), so the body fills the view however far the motion travels; "path": one box
+    around the whole motion. See skeleton_figure_spec for the same figure as a plain dict."""
+    import plotly.graph_objects as go
+
+    # plotly's per-property checks add a fifth to the time; the tests run them on the spec once
+    return go.Figure(skeleton_figure_spec(joints, fps=fps, title=title, view=view), _validate=False)
 
 
 # ------------------------------------------------------------------ attention

@@ -102,3 +102,12 @@ class ConsistencyTrainConfig:
     run: RunConfig = field(default_factory=lambda: RunConfig(out_dir="runs/consistency", checkpoint_every=100,
                                                               log_every=10))
     target_decay: float = 0.95        # EMA of the student that gives the distillation target; it is exported
+    # "lcd": the student at t is pulled to the target network at t - 20 after one teacher DDIM step
+    # (LCM's bootstrapped objective). "trajectory": the teacher solves each noise draw all the way
+    # down (DPM-Solver++ on `teacher_steps`, through every timestep the 1-4 step sampler visits) and
+    # the student at those timesteps regresses the solution directly: no bootstrap chain to
+    # propagate, so it needs far fewer steps, which is what a CPU can give.
+    target: str = "lcd"
+    teacher_steps: int = 25
+    replay: int = 4                   # optimiser steps per teacher solve (trajectory only)
+    replay_buffer: int = 16           # recent solves the replayed steps draw from

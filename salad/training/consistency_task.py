@@ -7,6 +7,12 @@ consistency function at (z_t, t) learns to match the target network's at (z_s, s
 network is an EMA of the student (decay 0.95) and is what gets exported. The student starts as
 a copy of the teacher with a zero-initialised guidance embedding, so at step 0 it is the
 teacher without guidance.
+
+With target = "trajectory" the teacher instead solves each noise draw from t = T-1 to the end,
+and the student's consistency function at the timesteps the 1-4 step sampler visits regresses
+that solution: the consistency function by its definition, with no bootstrap chain to
+propagate. One solve costs about as much as 25 LCD steps' teacher calls, so its states are
+replayed for a few optimiser steps from a small buffer of recent solves.
 """
 from __future__ import annotations
 
@@ -21,7 +27,7 @@ import torch.nn.functional as F
 
 from ..checkpoint import CheckpointError
 from ..config import from_dict, to_dict
-from ..diffusion.consistency import consistency_fn, grid_timesteps
+from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_timesteps
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
 from ..models.denoiser import Denoiser
 from ..models.io import load_denoiser, save_denoiser, vae_checksum, vae_latent_checksums
@@ -29,9 +35,16 @@ from .configs import ConsistencyTrainConfig, DenoiserTrainConfig
 from .denoiser_task import DenoiserTask
 
 
+OBJECTIVES = ("lcd", "trajectory")
+COND_KEYS = ("text", "text_mask", "frame_mask", "pooled", "auto", "text2", "text_mask2", "pooled2", "guidance")
+
+
 class ConsistencyTraining(nn.Module):
-    def __init__(self, teacher: Denoiser, schedule: NoiseSchedule, target_decay: float, huber_c: float):
+    def __init__(self, teacher: Denoiser, schedule: NoiseSchedule, target_decay: float, huber_c: float,
+                 objective: str = "lcd", teacher_steps: int = 25, replay_buffer: int = 16):
         super().__init__()
+        if objective not in OBJECTIVES:
+            raise ValueError(f"unknown consistency target {objective!r}; choose one of {', '.join(OBJECTIVES)}")
         cfg = copy.deepcopy(teacher.config)
         cfg.guidance_embedding = True
         self.student = Denoiser(cfg)
@@ -42,6 +55,14 @@ class ConsistencyTraining(nn.Module):
         self.teacher = teacher.requires_grad_(False)
         self.schedule, self.target_decay, self.huber_c = schedule, target_decay, huber_c
         self.k = schedule.config.train_steps // CONSISTENCY_GRID
+        self.objective = objective
+        # trajectory: the student learns at the sampler's own timesteps; the teacher's solve passes
+        # through each of them
+        self.points = sampler_timesteps(schedule)
+        even = [int(t) for t in schedule.sampler("dpm", teacher_steps).timesteps]
+        self.solve_timesteps = sorted(set(even) | set(self.points), reverse=True)
+        self.replay_buffer = replay_buffer
+        self._solves: list[dict] = []      # recent teacher solves; rebuilt after a resume, not saved
 
     def train(self, mode: bool = True):
         super().train(mode)
@@ -54,33 +75,76 @@ class ConsistencyTraining(nn.Module):
         for pt, ps in zip(self.target.parameters(), self.student.parameters()):
             pt.lerp_(ps.detach(), 1.0 - self.target_decay)
 
+    @staticmethod
+    def _student_cond(batch: dict) -> dict:
+        return dict(text=batch["text"], text_mask=batch["text_mask"], frame_mask=batch["frame_mask"],
+                    pooled_text=batch["pooled"], auto_length=batch["auto"])
+
+    def _guided(self, zt: torch.Tensor, t: torch.Tensor, batch: dict) -> torch.Tensor:
+        """The teacher's output with classifier-free guidance at each row's own scale (one forward)."""
+        fm = batch["frame_mask"]
+        out = self.teacher(torch.cat((zt, zt)), torch.cat((t, t)), batch["text2"], batch["text_mask2"],
+                           None if fm is None else torch.cat((fm, fm)), pooled_text=batch["pooled2"],
+                           auto_length=torch.cat((batch["auto"], batch["auto"]))).float()
+        uncond, c = out.chunk(2)
+        return uncond + batch["guidance"].view(-1, 1, 1, 1) * (c - uncond)
+
+    def _huber(self, pred: torch.Tensor, target: torch.Tensor, fm: torch.Tensor | None) -> torch.Tensor:
+        err = torch.sqrt((pred - target) ** 2 + self.huber_c ** 2) - self.huber_c
+        err = err.mean(dim=(2, 3))                           # (B, latent frames)
+        if fm is None:
+            return err.mean()
+        m = fm.float()
+        return (err * m).sum() / m.sum().clamp_min(1.0)
+
     def forward(self, batch: dict):
         # the target follows the student as updated by the last optimiser step
         self.update_target()
+        if self.objective == "trajectory":
+            return self._trajectory_loss(batch)
         z0, noise, t, w = batch["latents"], batch["noise"], batch["timesteps"], batch["guidance"]
         s = (t - self.k).clamp_min(0)
-        cond = dict(text=batch["text"], text_mask=batch["text_mask"], frame_mask=batch["frame_mask"],
-                    pooled_text=batch["pooled"], auto_length=batch["auto"])
+        cond = self._student_cond(batch)
         zt = self.schedule.add_noise(z0, noise, t)
         pred = consistency_fn(self.schedule, zt, self.student(zt, t, guidance=w, **cond).float(), t)
         with torch.no_grad():
-            fm = batch["frame_mask"]
-            out = self.teacher(torch.cat((zt, zt)), torch.cat((t, t)), batch["text2"], batch["text_mask2"],
-                               None if fm is None else torch.cat((fm, fm)), pooled_text=batch["pooled2"],
-                               auto_length=torch.cat((batch["auto"], batch["auto"]))).float()
-            uncond, c = out.chunk(2)
-            v = uncond + w.view(-1, 1, 1, 1) * (c - uncond)
-            x0, eps = self.schedule.to_x0_eps(zt, v, t)
+            x0, eps = self.schedule.to_x0_eps(zt, self._guided(zt, t, batch), t)
             zs = self.schedule.add_noise(x0, eps, s)         # the teacher's DDIM step t -> s
             target = consistency_fn(self.schedule, zs, self.target(zs, s, guidance=w, **cond).float(), s)
-        err = torch.sqrt((pred - target) ** 2 + self.huber_c ** 2) - self.huber_c
-        err = err.mean(dim=(2, 3))                           # (B, latent frames)
-        if fm is not None:
-            m = fm.float()
-            loss = (err * m).sum() / m.sum().clamp_min(1.0)
-        else:
-            loss = err.mean()
+        loss = self._huber(pred, target, batch["frame_mask"])
         return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}
+
+    @torch.no_grad()
+    def solve(self, batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """The teacher's solution from batch["noise"] at t = T-1 with guidance: (the states at
+        self.points (P, B, ...), the clean latent (B, ...))."""
+        sched = self.schedule.sampler("dpm", timesteps=self.solve_timesteps)
+        x = batch["noise"]
+        states = {}
+        for t in sched.timesteps:
+            if int(t) in self.points:
+                states[int(t)] = x
+            tt = torch.full((x.shape[0],), int(t), dtype=torch.long, device=x.device)
+            x = sched.step(self._guided(x, tt, batch), t, x).prev_sample
+        return torch.stack([states[t] for t in self.points]), x
+
+    def _trajectory_loss(self, batch: dict):
+        if bool(batch["fresh"]) or not self._solves:
+            states, x0 = self.solve(batch)
+            self._solves = (self._solves + [{"states": states, "x0": x0, **{k: batch[k] for k in COND_KEYS}}])
+            self._solves = self._solves[-self.replay_buffer:]
+            entry = self._solves[-1]
+        else:
+            entry = self._solves[min(int(float(batch["pick"]) * len(self._solves)), len(self._solves) - 1)]
+        B = entry["x0"].shape[0]
+        point = batch["point"][:B]
+        zt = entry["states"][point, torch.arange(B, device=point.device)]
+        t = torch.tensor(self.points, device=zt.device)[point]
+        pred = consistency_fn(self.schedule, zt,
+                              self.student(zt, t, guidance=entry["guidance"], **self._student_cond(entry)).float(), t)
+        loss = self._huber(pred, entry["x0"], entry["frame_mask"])
+        return loss, {"loss": float(loss.detach()), "auto": float(entry["auto"].float().mean()),
+                      "solved": float(bool(batch["fresh"]))}
 
 
 def _pad_tokens(tokens: torch.Tensor, mask: torch.Tensor, length: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -98,6 +162,11 @@ class ConsistencyTask:
             raise ValueError(f"need 0 <= guidance_min <= guidance_max, got {cfg.guidance_min}, {cfg.guidance_max}")
         if not 0.0 < cfg.target_decay < 1.0:
             raise ValueError(f"target_decay must be in (0, 1), got {cfg.target_decay}")
+        if cfg.target not in OBJECTIVES:
+            raise ValueError(f"target must be one of {', '.join(OBJECTIVES)}, got {cfg.target!r}")
+        if cfg.replay < 1 or cfg.replay_buffer < 1 or not 2 <= cfg.teacher_steps <= 200:
+            raise ValueError(f"need replay >= 1, replay_buffer >= 1 and teacher_steps in 2..200, got "
+                             f"{cfg.replay}, {cfg.replay_buffer}, {cfg.teacher_steps}")
         self.cfg = cfg
         root = Path(cfg.teacher)
         if not (root / "vae").is_dir() or not (root / "denoiser").is_dir():
@@ -114,14 +183,34 @@ class ConsistencyTask:
         # with every caption kept: the teacher's unconditional row is added here.
         self.data = DenoiserTask(DenoiserTrainConfig(
             data=cfg.data, model=teacher.config, diffusion=from_dict(DiffusionConfig, tcfg["diffusion"]),
-            vae=str(root / "vae"), text_encoder=tcfg["text_encoder"], text_dropout=0.0,
+            vae=str(root / "vae"), text_encoder=tcfg["text_encoder"], text_dropout=0.0, optim=cfg.optim,
             auto_length_prob=cfg.auto_length_prob), show_progress=show_progress)
         self.schedule = self.data.schedule
         self.grid = grid_timesteps(self.schedule)
-        self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c)
+        self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
+                                         cfg.teacher_steps, cfg.replay_buffer)
+        self._drawn = 0
+
+    def _replayed(self, rng: np.random.Generator) -> dict | None:
+        """For the trajectory target: a step that trains on a stored solve (None: solve afresh)."""
+        if self.cfg.target != "trajectory":
+            return None
+        self._drawn += 1
+        g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+        B = self.cfg.optim.batch_size
+        pick = {"point": torch.randint(0, len(self.model.points), (B,), generator=g),
+                "pick": torch.rand((), generator=g)}
+        if (self._drawn - 1) % self.cfg.replay == 0:
+            return {**pick, "fresh": torch.tensor(True)}
+        return {**pick, "fresh": torch.tensor(False)}
 
     def batch(self, rng: np.random.Generator) -> dict:
+        replay = self._replayed(rng)
+        if replay is not None and not bool(replay["fresh"]):
+            return replay
         b = self.data.batch(rng)
+        if replay is not None:
+            b.update(replay)
         B = b["latents"].shape[0]
         g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
         b["timesteps"] = self.grid[torch.randint(0, len(self.grid), (B,), generator=g)]
