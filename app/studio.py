@@ -106,12 +106,14 @@ def offered_samplers(pipe) -> tuple[str, ...]:
 class Studio:
     """Generation and attention views over one loaded pipeline, for many sessions."""
 
-    def __init__(self, pipe, workspace: Workspace, control_examples: Path | None = None, sampler: str = "ddim"):
+    def __init__(self, pipe, workspace: Workspace, control_examples: Path | None = None, sampler: str = "auto"):
         self.pipe = pipe
         self.workspace = workspace
         self.control_examples = control_examples      # a folder of control .npy files, or None
         self.samplers = offered_samplers(pipe)
-        if sampler == "consistency" and sampler not in self.samplers:
+        if sampler == "auto":
+            sampler = "consistency" if "consistency" in self.samplers else "ddim"
+        elif sampler == "consistency" and sampler not in self.samplers:
             log.warning("the consistency sampler was asked for but %s has no consistency student (a consistency/ "
                         "checkpoint); the panels default to ddim", pipe.source or "the model")
             sampler = "ddim"

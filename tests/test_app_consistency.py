@@ -175,7 +175,12 @@ def test_a_consistency_default_starts_every_panel_on_the_student(student_pipe, p
             assert p[radio]["value"] == "consistency" and p[steps]["value"] == 4, radio
             assert p[steps]["maximum"] == 50
         assert p["real-seed"]["visible"] is True and p["real-inversion"]["interactive"] is False
-        # a model without a student falls back to ddim, with a warning
+        # the default (auto) is the student where there is one, and ddim quietly where there is none
+        assert Studio(student_pipe, ws).default_sampler == "consistency"
+        with caplog.at_level(logging.WARNING, logger="salad.studio"):
+            assert Studio(pipe, ws).default_sampler == "ddim"
+        assert "no consistency student" not in caplog.text
+        # asking for the student of a model without one falls back to ddim, with a warning
         with caplog.at_level(logging.WARNING, logger="salad.studio"):
             studio = Studio(pipe, ws, sampler="consistency")
         assert studio.default_sampler == "ddim" and "no consistency student" in caplog.text
@@ -188,9 +193,9 @@ def test_a_consistency_default_starts_every_panel_on_the_student(student_pipe, p
 def test_the_sampler_setting(tmp_path):
     from app.cli import parse_args
 
-    assert Settings().sampler == "ddim" and parse_args([]).sampler == "ddim"
+    assert Settings().sampler == "auto" and parse_args([]).sampler == "auto"
     assert parse_args(["--sampler", "consistency"]).sampler == "consistency"
-    with pytest.raises(ValueError, match="sampler must be one of ddim, dpm, consistency"):
+    with pytest.raises(ValueError, match="sampler must be one of auto, ddim, dpm, consistency"):
         Settings(sampler="euler")
     with pytest.raises(SystemExit):
         parse_args(["--sampler", "euler"])
