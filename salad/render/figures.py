@@ -2,6 +2,7 @@
 static PNG of the heatmaps for export. Inputs are plain NumPy arrays."""
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
@@ -116,7 +117,15 @@ def _default_template() -> dict | None:
     import plotly.io as pio
 
     name = pio.templates.default
-    return pio.templates[name].to_plotly_json() if name else None
+    return _template_json(name) if name else None
+
+
+@functools.lru_cache(maxsize=4)
+def _template_json(name: str) -> dict:
+    # shared by every spec, read only: serialising the template once per figure is wasted work
+    import plotly.io as pio
+
+    return pio.templates[name].to_plotly_json()
 
 
 def skeleton_figure_spec(joints: np.ndarray, fps: float = 20, title: str | None = None,

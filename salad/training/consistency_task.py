@@ -131,9 +131,8 @@ class ConsistencyTraining(nn.Module):
     def _trajectory_loss(self, batch: dict):
         if bool(batch["fresh"]) or not self._solves:
             states, x0 = self.solve(batch)
-            self._solves = (self._solves + [{"states": states, "x0": x0, **{k: batch[k] for k in COND_KEYS}}])
-            self._solves = self._solves[-self.replay_buffer:]
-            entry = self._solves[-1]
+            entry = {"states": states, "x0": x0, **{k: batch[k] for k in COND_KEYS}}
+            self._solves = (self._solves + [entry])[-self.replay_buffer:]
         else:
             entry = self._solves[min(int(float(batch["pick"]) * len(self._solves)), len(self._solves) - 1)]
         B = entry["x0"].shape[0]
@@ -198,11 +197,8 @@ class ConsistencyTask:
         self._drawn += 1
         g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
         B = self.cfg.optim.batch_size
-        pick = {"point": torch.randint(0, len(self.model.points), (B,), generator=g),
-                "pick": torch.rand((), generator=g)}
-        if (self._drawn - 1) % self.cfg.replay == 0:
-            return {**pick, "fresh": torch.tensor(True)}
-        return {**pick, "fresh": torch.tensor(False)}
+        return {"point": torch.randint(0, len(self.model.points), (B,), generator=g),
+                "pick": torch.rand((), generator=g), "fresh": torch.tensor((self._drawn - 1) % self.cfg.replay == 0)}
 
     def batch(self, rng: np.random.Generator) -> dict:
         replay = self._replayed(rng)
