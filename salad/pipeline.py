@@ -15,8 +15,8 @@ import torch
 
 from .checkpoint import CheckpointError
 from .files import REPO_ROOT
-from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, default_repeats,
-                                 guided_consistency_sample, guided_sample, position_loss)
+from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, STUDENT_REFINE_STEPS,
+                                 default_repeats, guided_consistency_sample, guided_sample, position_loss)
 from .diffusion.consistency import consistency_sample
 from .diffusion.sampling import sample
 from .diffusion.schedule import CONSISTENCY_GRID, SAMPLERS, DiffusionConfig, NoiseSchedule
@@ -274,7 +274,8 @@ class Pipeline:
         multiple of 4). strength scales the guidance step; repeats is the number of
         time-travel repeats per step (an int, or a function of (step, steps));
         gradient_steps the guidance steps per network evaluation and refine_steps those
-        on the final latent (defaults in salad.diffusion.guidance). sampler "ddim" (steps default 50)
+        on the final latent (defaults in salad.diffusion.guidance: fewer refinement steps for the
+        student, which is there to be fast). sampler "ddim" (steps default 50)
         or "consistency" (the distilled student, steps default 4, no time travel: `repeats` is
         not used).
 
@@ -314,7 +315,8 @@ class Pipeline:
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
         noise = self.noise(1, frames, seed).repeat(len(prompts), 1, 1, 1)     # one z_T for both edit branches
         gradient_steps = DEFAULT_GRADIENT_STEPS if gradient_steps is None else gradient_steps
-        refine_steps = DEFAULT_REFINE_STEPS if refine_steps is None else refine_steps
+        if refine_steps is None:
+            refine_steps = STUDENT_REFINE_STEPS if sampler == "consistency" else DEFAULT_REFINE_STEPS
         with self.network(sampler).controlled(None if plan is None else plan.controller):
             if sampler == "consistency":
                 z = guided_consistency_sample(self.student_fn(text, False, cfg), noise, self.schedule, loss, steps,
@@ -335,7 +337,7 @@ class Pipeline:
         for m in motions:
             err = control_errors(m.joints, sig)
             m.info.update(control_mean_error_m=float(err.mean()), control_max_error_m=float(err.max()),
-                          control_strength=float(strength))
+                          control_strength=float(strength), control_refine_steps=int(refine_steps))
         if plan is None:
             return motions[0]
         source, edited = motions

@@ -4,7 +4,7 @@ from conftest import synthetic_walk
 from salad.motion import representation as rep
 from salad.motion import skeleton as sk
 from salad.motion.bvh import load_bvh
-from salad.motion.bvh_export import rigid_joints, save_bvh
+from salad.motion.bvh_export import rest_offsets, rigid_joints, rigid_pose, rigid_positions, save_bvh
 from salad.motion.cleanup import clean_motion
 
 
@@ -25,6 +25,19 @@ def test_a_rigid_motion_is_left_as_it_is():
     f = rep.joints_to_features(rep.canonicalize(synthetic_walk(61).astype(np.float64))).astype(np.float32)
     j = rep.features_to_joints(f)
     np.testing.assert_allclose(rigid_joints(j), j, atol=1e-5)
+
+
+def test_rigid_positions_are_the_posed_rest_skeletons_joints():
+    import torch
+
+    noisy, _ = stretched_walk(seed=3)
+    j = torch.as_tensor(noisy.astype(np.float64))
+    offsets = rest_offsets(j)
+    torch.testing.assert_close(rigid_positions(j, offsets), rigid_pose(j, offsets)[1], atol=1e-9, rtol=0)
+    # a bone of zero length (the knee on the rigidly placed hip) keeps its parent's rotation: the
+    # same answer through rigid_pose's path
+    j[5, 5] = rigid_pose(j, offsets)[1][5, 2]
+    torch.testing.assert_close(rigid_positions(j, offsets), rigid_pose(j, offsets)[1], atol=1e-9, rtol=0)
 
 
 def test_clean_up_holds_the_bones_keeps_their_directions_and_exports_exactly(tmp_path):

@@ -289,6 +289,8 @@ def test_consistency_control_follows_targets_and_composes_with_an_edit(student_p
     guided = student_pipe.control("a person walks forward", signal=sig, seed=5, sampler="consistency",
                                   progress=lambda i, n: steps.append(n))
     assert steps == [4] * 4
+    from salad.diffusion.guidance import STUDENT_REFINE_STEPS
+    assert guided.info["control_refine_steps"] == STUDENT_REFINE_STEPS < 50
     before = np.abs(free.joints[:, 0, 0] - targets[:, 0, 0]).mean()
     assert control_errors(guided.joints, sig).mean() < 0.5 * before
     off = student_pipe.control("a person walks forward", signal=sig, seed=5, sampler="consistency", strength=0.0)

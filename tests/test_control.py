@@ -273,6 +273,7 @@ def test_control_follows_targets_and_leaves_unmasked_joints_free(pipe):
     after = np.abs(guided.joints[:, 0, 0] - targets[:, 0, 0]).mean()
     assert after < before * 0.8, (before, after)
     assert guided.info["control_mean_error_m"] == pytest.approx(control_errors(guided.joints, sig).mean())
+    assert guided.info["control_refine_steps"] == 50           # the teacher's default; the student's is lower
     # targets of unmasked joints are ignored entirely: moving them changes nothing
     scrambled = targets.copy()
     scrambled[:, 1:] += np.random.default_rng(0).normal(size=scrambled[:, 1:].shape)

@@ -170,10 +170,18 @@ def test_planted_foot_error_counts_sliding_where_the_real_foot_is_planted_only(t
     assert float(planted_foot_error(as_batch(slid), as_batch(f), valid, norm)) == pytest.approx(0.04, rel=0.02)
     # the root drifts with it, on every frame: the root term sees the same (0.2 m/s)^2
     assert float(velocity_errors(as_batch(slid), as_batch(f), valid, norm)["root"]) == pytest.approx(0.04, rel=0.02)
+    # a steady drift has no acceleration; a root trembling by +-1 mm a frame has 4 mm * FPS^2 on every
+    # frame, on 1 of the 22 joints
+    assert float(velocity_errors(as_batch(slid), as_batch(f), valid, norm)["accel"]) == pytest.approx(0.0, abs=0.05)
+    trembling = f.copy()
+    trembling[:, 3] += 0.001 * (-1.0) ** np.arange(len(f))
+    expected = (4 * 0.001 * rep.FPS ** 2) ** 2 / 22
+    assert float(velocity_errors(as_batch(trembling), as_batch(f), valid, norm)["accel"]) == pytest.approx(expected, rel=0.05)
     # a row weighted 0 counts for nothing
     two = velocity_errors(torch.cat((as_batch(slid), as_batch(f))), torch.cat((as_batch(f), as_batch(f))),
                           torch.cat((valid, valid)), norm, weights=torch.tensor([0.0, 1.0]))
     assert float(two["foot"]) == pytest.approx(0.0, abs=1e-6) and float(two["root"]) == pytest.approx(0.0, abs=1e-6)
+    assert float(two["accel"]) == pytest.approx(0.0, abs=0.05)
     # with no planted frame in the real motion there is nothing to count
     real_no_contact = f.copy()
     real_no_contact[:, rep.CONTACT_SLICE] = 0.0
@@ -184,15 +192,18 @@ def test_planted_foot_error_counts_sliding_where_the_real_foot_is_planted_only(t
 
 def test_the_foot_term_joins_the_decoders_loss(tiny_model, tiny_dataset, tmp_path):
     cfg = _san_cfg(tiny_dataset, tiny_model / "vae", tmp_path / "foot", steps=1, lam=0.0)
-    cfg.lambda_foot, cfg.lambda_root = 2.0, 3.0
+    cfg.lambda_foot, cfg.lambda_root, cfg.lambda_acc = 2.0, 3.0, 0.1
     task = VAESANTask(cfg)
     trainer = Trainer(task, task.cfg.optim, task.cfg.run)
     logs = trainer.step(task.batch(trainer.rng))
-    assert logs["foot"] > 0 and logs["root_vel"] > 0
-    assert logs["loss"] == pytest.approx(logs["rec_total"] + 2.0 * logs["foot"] + 3.0 * logs["root_vel"], rel=1e-5)
-    cfg.lambda_foot = -1.0
-    with pytest.raises(ValueError, match="lambda_foot"):
-        VAESANTask(cfg)
+    assert logs["foot"] > 0 and logs["root_vel"] > 0 and logs["accel"] > 0
+    assert logs["loss"] == pytest.approx(logs["rec_total"] + 2.0 * logs["foot"] + 3.0 * logs["root_vel"]
+                                         + 0.1 * logs["accel"], rel=1e-5)
+    for name in ("lambda_foot", "lambda_acc"):
+        bad = _san_cfg(tiny_dataset, tiny_model / "vae", tmp_path / name, steps=1, lam=0.0)
+        setattr(bad, name, -1.0)
+        with pytest.raises(ValueError, match=name):
+            VAESANTask(bad)
 
 
 def test_eval_vae_measures_pose_error_and_feet_for_each_vae(tiny_model, tiny_dataset, tmp_path, capsys):

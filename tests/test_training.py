@@ -423,3 +423,33 @@ def test_the_denoisers_contact_loss_holds_decoded_feet_to_the_real_ones(tiny_mod
     cfg.vae = str(tiny_model / "vae")
     with pytest.raises(ConfigError, match="contact_loss"):
         DenoiserTask(cfg, show_progress=False)
+
+
+def test_posterior_noise_zero_trains_on_the_vaes_posterior_means(tiny_model, tiny_dataset, tmp_path):
+    from salad.config import ConfigError
+    from salad.diffusion.schedule import DiffusionConfig
+    from salad.models.denoiser import DenoiserConfig
+    from salad.training.configs import DenoiserTrainConfig
+    from salad.training.denoiser_task import DenoiserTask
+
+    def latents(noise, seed):
+        cfg = DenoiserTrainConfig(
+            data=DataConfig(root=str(tiny_dataset), max_frames=80), auto_length_prob=1.0, posterior_noise=noise,
+            model=DenoiserConfig(latent_dim=8, dim=32, heads=4, ff_dim=64, layers=3, text_dim=384),
+            diffusion=DiffusionConfig(), optim=OptimConfig(batch_size=4, warmup_steps=1, max_steps=1),
+            run=RunConfig(out_dir=str(tmp_path / "run"), bf16=False), vae=str(tiny_model / "vae"))
+        task = DenoiserTask(cfg, show_progress=False)
+        torch.manual_seed(seed)
+        batch = task.batch(np.random.default_rng(0))
+        return batch, task
+
+    (a, task), (b, _) = latents(0.0, 1), latents(0.0, 2)
+    # the same clips give the same latents whatever the torch seed: the scaled posterior means
+    torch.testing.assert_close(a["latents"], b["latents"])
+    means = torch.stack([mu for mu, _ in task._posteriors.values()])     # clips that fit are encoded once
+    matched = sum(any(torch.allclose(row, m * task.latent_scale) for m in means) for row in a["latents"])
+    assert matched >= len(means) >= 1
+    (c, _), (d, _) = latents(1.0, 1), latents(1.0, 2)
+    assert float((c["latents"] - d["latents"]).abs().max()) > 1e-3      # posterior samples differ
+    with pytest.raises(ConfigError, match="posterior_noise"):
+        latents(-0.5, 0)

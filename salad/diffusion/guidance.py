@@ -36,6 +36,10 @@ from .schedule import NoiseSchedule
 
 DEFAULT_GRADIENT_STEPS = 1
 DEFAULT_REFINE_STEPS = 50
+# The distilled student exists to answer fast, and the refinement is most of its guided time:
+# 25 evaluations instead of 50 take ~40% off it for a mean error of 2.0 cm instead of 1.2
+# (eval-control, 16 test clips, student step 4,200).
+STUDENT_REFINE_STEPS = 25
 SUFFICIENT_DECREASE = 0.5     # accept a step when the loss drops by half of what the gradient predicts
 BACKTRACK = 0.35              # step shrink factor while it does not
 MAX_BACKTRACKS = 6

@@ -69,6 +69,9 @@ class DenoiserTrainConfig:
     # weight of the planted feet's world-velocity error of the decoded clean estimate (m/s)^2
     # (training/foot_loss.py); 0 = off
     contact_loss: float = 0.0
+    # the latents are mu + posterior_noise * sigma * eps of the VAE's posterior; 0 trains on the means, whose
+    # motion decodes without the frame-to-frame tremor that the posterior's noise becomes in the decoder
+    posterior_noise: float = 1.0
 
 
 @dataclass
@@ -80,6 +83,8 @@ class VAESANTrainConfig:
     # weights of the planted feet's and of the root's world-velocity error, (m/s)^2 (training/foot_loss.py); 0 = off
     lambda_foot: float = 0.0
     lambda_root: float = 0.0
+    # weight of the joints' world acceleration error, (m/s^2)^2: keeps latent noise from becoming jitter; 0 = off
+    lambda_acc: float = 0.0
     data: DataConfig = field(default_factory=DataConfig)
     discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, warmup_steps=100, grad_clip=0.0))

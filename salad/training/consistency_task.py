@@ -180,10 +180,12 @@ class ConsistencyTask:
         self.vae_checksum = vae_checksum(root / "vae")
         # Batches are the denoiser's own (same latents, captions, class balance, length modes),
         # with every caption kept: the teacher's unconditional row is added here.
+        teacher_training = doc.get("meta", {}).get("train_config", {})
         self.data = DenoiserTask(DenoiserTrainConfig(
             data=cfg.data, model=teacher.config, diffusion=from_dict(DiffusionConfig, tcfg["diffusion"]),
             vae=str(root / "vae"), text_encoder=tcfg["text_encoder"], text_dropout=0.0, optim=cfg.optim,
-            auto_length_prob=cfg.auto_length_prob), show_progress=show_progress)
+            auto_length_prob=cfg.auto_length_prob,
+            posterior_noise=float(teacher_training.get("posterior_noise", 1.0))), show_progress=show_progress)
         self.schedule = self.data.schedule
         self.grid = grid_timesteps(self.schedule)
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,

@@ -4,8 +4,8 @@ Each batch is either "fixed length" (motions of their own length, padded and mas
 in time) or "auto length" (every motion on the full canvas, followed by VAE-encoded
 padding whose activation channel is 0), chosen per batch. One model thus learns both
 to fill a requested duration and to decide a duration itself (MoLA). Latents are samples
-of the frozen VAE's posterior: encoded at first use for motions that fit the canvas, at
-every use for random windows of longer ones.
+of the frozen VAE's posterior (or its means, with posterior_noise = 0): encoded at first use
+for motions that fit the canvas, at every use for random windows of longer ones.
 
 With contact_loss > 0 the clean-latent estimate is also decoded by the frozen VAE and its
 planted feet are held to the real motion's (training/foot_loss.py), weighted per sample by the
@@ -118,6 +118,8 @@ class DenoiserTask:
         self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule)
         if cfg.contact_loss < 0:
             raise ConfigError(f"contact_loss must be >= 0, got {cfg.contact_loss}")
+        if not cfg.posterior_noise >= 0:
+            raise ConfigError(f"posterior_noise must be >= 0, got {cfg.posterior_noise}")
 
     # ------------------------------------------------------------ batches
     def _canvas(self, crops: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -172,7 +174,8 @@ class DenoiserTask:
                     self._posteriors[int(idx[b])] = posterior[b]
         mu = torch.stack([posterior[b][0] for b in range(B)])
         logvar = torch.stack([posterior[b][1] for b in range(B)])
-        latents = ((mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)) * self.latent_scale)[:, : T // 4]
+        noise = self.cfg.posterior_noise * torch.randn_like(mu) * torch.exp(0.5 * logvar)
+        latents = ((mu + noise) * self.latent_scale)[:, : T // 4]
         if auto:
             frame_mask = None
         else:

@@ -4,7 +4,8 @@ The encoder and the latent scale are frozen, so a denoiser trained on the source
 decodes through the fine-tuned decoder unchanged; the exported checkpoint records the source's
 checksum for load_pipeline's compatibility check. The decoder minimises the source VAE's own
 reconstruction loss plus lambda_adv times the SAN generator loss (plus, where set, lambda_foot and
-lambda_root times the feet's and the root's world-velocity errors: training/foot_loss.py); the
+lambda_root times the feet's and the root's world-velocity errors, and lambda_acc times the joints'
+acceleration error: training/foot_loss.py); the
 discriminator learns from the same batch. Both updates come from one backward pass through the shared Trainer
 (exact resume, bf16): the discriminator sees the reconstruction detached, and the decoder's
 adversarial term sees the discriminator's parameters detached, so each loss reaches only
@@ -45,15 +46,17 @@ class AdversarialVAETraining(nn.Module):
     """forward(batch) -> (loss, logs) for the Trainer; encoder frozen and always in eval mode."""
 
     def __init__(self, vae: MotionVAE, discriminator: SANDiscriminator, lambda_adv: float,
-                 lambda_foot: float = 0.0, normalizer: Normalizer | None = None, lambda_root: float = 0.0):
+                 lambda_foot: float = 0.0, normalizer: Normalizer | None = None, lambda_root: float = 0.0,
+                 lambda_acc: float = 0.0):
         super().__init__()
-        if min(lambda_adv, lambda_foot, lambda_root) < 0:
-            raise ValueError(f"lambda_adv, lambda_foot and lambda_root must be >= 0, got {lambda_adv}, "
-                             f"{lambda_foot} and {lambda_root}")
-        if (lambda_foot > 0 or lambda_root > 0) and normalizer is None:
-            raise ValueError("lambda_foot and lambda_root need the VAE's normalizer (the terms work in metres)")
+        if min(lambda_adv, lambda_foot, lambda_root, lambda_acc) < 0:
+            raise ValueError(f"lambda_adv, lambda_foot, lambda_root and lambda_acc must be >= 0, got {lambda_adv}, "
+                             f"{lambda_foot}, {lambda_root} and {lambda_acc}")
+        if max(lambda_foot, lambda_root, lambda_acc) > 0 and normalizer is None:
+            raise ValueError("lambda_foot, lambda_root and lambda_acc need the VAE's normalizer (the terms work in metres)")
         self.vae, self.disc, self.lambda_adv = vae, discriminator, float(lambda_adv)
         self.lambda_foot, self.lambda_root, self.normalizer = float(lambda_foot), float(lambda_root), normalizer
+        self.lambda_acc = float(lambda_acc)
         for m in encoder_modules(vae):
             m.requires_grad_(False)
 
@@ -71,11 +74,12 @@ class AdversarialVAETraining(nn.Module):
         total, logs, recon, _ = self.vae.loss(x, act, valid=valid, eps=batch["eps"])
         logs["rec_total"] = logs.pop("total")
         kinematic = 0.0
-        if self.lambda_foot > 0 or self.lambda_root > 0:
+        if max(self.lambda_foot, self.lambda_root, self.lambda_acc) > 0:
             errs = velocity_errors(recon, x, valid, self.normalizer)
-            total = total + self.lambda_foot * errs["foot"] + self.lambda_root * errs["root"]
-            logs.update(foot=float(errs["foot"].detach()), root_vel=float(errs["root"].detach()))
-            kinematic = self.lambda_foot * logs["foot"] + self.lambda_root * logs["root_vel"]
+            total = total + self.lambda_foot * errs["foot"] + self.lambda_root * errs["root"] + self.lambda_acc * errs["accel"]
+            logs.update(foot=float(errs["foot"].detach()), root_vel=float(errs["root"].detach()),
+                        accel=float(errs["accel"].detach()))
+            kinematic = self.lambda_foot * logs["foot"] + self.lambda_root * logs["root_vel"] + self.lambda_acc * logs["accel"]
         if self.lambda_adv > 0:
             mask = self.disc.patch_mask(valid)
             frozen = {k: v.detach() for k, v in self.disc.named_parameters()}
@@ -108,7 +112,7 @@ class VAESANTask:
         self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang)
         torch.manual_seed(cfg.run.seed)
         self.model = AdversarialVAETraining(vae, SANDiscriminator(cfg.discriminator), cfg.lambda_adv,
-                                            cfg.lambda_foot, self.normalizer, cfg.lambda_root)
+                                            cfg.lambda_foot, self.normalizer, cfg.lambda_root, cfg.lambda_acc)
 
     def batch(self, rng: np.random.Generator) -> dict:
         b = self.sampler.batch(self.cfg.optim.batch_size, rng)
