@@ -75,7 +75,7 @@ def by_name(files, suffix: str) -> Path:
 def test_word_swap_gives_a_side_by_side_video_both_maps_and_files(client, pipe):
     video, summary, word, source_map, edited_map, files = edit(client, seed=3)
     frames = mp4_frames(video)
-    assert frames.shape == (24, 384, 768, 3) and frames.std() > 5, "two 384-px panels, 24 frames"
+    assert frames.shape == (24, 272, 544, 3) and frames.std() > 5, "two 272-px preview panels, 24 frames"
     assert Path(video).name.endswith("_side-by-side_preview.mp4"), "the preview first"
     assert len(files) == 8 and not any(f.endswith(".mp4") for f in files), "no video among the downloads yet"
     assert "Word swap" in summary and "“right” → “left”" in summary and "80%" in summary
@@ -97,7 +97,7 @@ def test_word_swap_gives_a_side_by_side_video_both_maps_and_files(client, pipe):
     # downloads, then the edited motion's own video and both attention maps join them.
     full, listed = client.predict("cm", api_name="/edit_video")
     assert Path(full).name == Path(video).name.replace("_preview.mp4", ".mp4")
-    assert mp4_frames(full).shape == frames.shape and [Path(f).name for f in listed][0] == Path(full).name
+    assert mp4_frames(full).shape == (24, 384, 768, 3) and [Path(f).name for f in listed][0] == Path(full).name
     assert len(listed) == 9
     everything = client.predict(api_name="/edit_files")
     names = [Path(f).name for f in everything]
@@ -125,7 +125,7 @@ def test_word_swap_gives_a_side_by_side_video_both_maps_and_files(client, pipe):
 ])
 def test_every_edit_mode_and_their_compositions(client, kwargs, expect):
     video, summary, word, source_map, edited_map, files = edit(client, **kwargs)
-    assert mp4_frames(video).shape[1:] == (384, 768, 3)
+    assert mp4_frames(video).shape[1:] == (272, 544, 3)
     for text in expect:
         assert text in summary, (text, summary)
     edited, source = np.load(by_name(files, "_edited_joints.npy")), np.load(by_name(files, "_source_joints.npy"))
@@ -194,9 +194,9 @@ def test_path_control_renders_targets_and_reports_its_error(client, pipe):
     full, listed = client.predict("cm", api_name="/control_video")
     assert Path(full).name == Path(video).name.replace("_preview.mp4", ".mp4")
     assert [Path(f).name for f in listed] == [Path(full).name] + [Path(f).name for f in files]
-    for shown in (video, full):
+    for shown, size in ((video, 320), (full, 448)):
         frames = mp4_frames(shown)
-        assert frames.shape == (24, 448, 448, 3)
+        assert frames.shape == (24, size, size, 3)
         green = (frames[..., 1].astype(int) - frames[..., 0] > 60) & (frames[..., 1].astype(int) - frames[..., 2] > 20)
         assert green.sum(axis=(1, 2)).min() > 50, "the target path and markers are drawn in green"
     fig = plot(top_view)
