@@ -303,7 +303,7 @@ def markdown_report(results: dict[str, Any]) -> str:
                      + "; ".join(f"{n}: {v['top1']:.2f} / {v['top3']:.2f}" for n, v in ratios) + ".")
     lines += ["", f"Protocol: {p['samples']} motions of `{p['dataset']}` (at most {p['max_frames']} frames, "
                   f"multiples of 4), one caption each; control = the real {', '.join(p['joints'])} position at "
-                  f"{p['density']} density; {p['steps']} DDIM steps, CFG {p['cfg']}, seed {p['seed']}. Traj. err: share of motions "
+                  f"{p['density']} density; {p['steps']} {p.get('sampler', 'ddim')} steps, CFG {p['cfg']}, seed {p['seed']}. Traj. err: share of motions "
                   "with any controlled location off by more than the threshold; Loc. err: mean share of controlled "
                   "locations off by more; Avg. err: mean distance (m, ± 95% CI over motions). R-precision within "
                   f"pools of {p['pool']}" + (" (easier than the usual 32)" if p["pool"] < MAX_POOL else "") +
