@@ -51,7 +51,8 @@ def test_editing_a_real_walk_keeps_it_a_walk_or_makes_it_a_run(pipe, bandai_subs
     assert speed(mirrored.source) > 0.5
     # The bug this guards against stopped a mirrored walk (ratio 0.04). Over a 1 s clip the net speed
     # moves with the gait phase: 1 s windows of three test walks mirror to 0.9-1.7x their speed, and this clip
-    # to 0.55x (step 17,000) or 0.45x (step 20,000) of it, so the bound sits well below and above those.
-    assert 0.3 < speed(mirrored.edited) / speed(mirrored.source) < 3.0
+    # to 0.55x (step 17,000) or 0.45x (step 20,000) of it; the bounds leave room for later snapshots while
+    # staying five times above the bug.
+    assert 0.2 < speed(mirrored.edited) / speed(mirrored.source) < 3.0
     run = pipe.edit_real(walk, "a person walks forward", "a person runs forward", mode="swap", steps=10, trim=True)
     assert speed(run.source) * 1.3 < speed(run.edited) < 6.0      # faster than the walk, slower than a sprint
