@@ -160,9 +160,8 @@ class Studio:
 
         m = result.motion
         report = lambda i, n: progress("rendering", i, n)   # noqa: E731
-        size = {} if antialias else {"size": PREVIEW_SIZE}
+        size = {} if antialias else {"size": PREVIEW_PANEL_SIZE if result.kind == "edit" else PREVIEW_SIZE}
         if result.kind == "edit":
-            size = {} if antialias else {"size": PREVIEW_PANEL_SIZE}
             return render_side_by_side([result.source.joints, m.joints], ["source", "edited"], path, fps=m.fps,
                                        progress=report, antialias=antialias, **size)
         if result.kind == "control":
