@@ -62,10 +62,11 @@ def load_toml(cls: type[T], path: str | Path) -> T:
 
 
 def apply_overrides(cfg, args) -> None:
-    """The command line's --out-dir, --max-steps, --data, --threads, --device and --vae, where given, win over
-    the file."""
+    """The command line's --out-dir, --max-steps, --data, --bundle, --threads, --device and --vae, where given,
+    win over the file."""
     for flag, section, name in (("out_dir", "run", "out_dir"), ("max_steps", "optim", "max_steps"),
-                                ("data", "data", "root"), ("threads", "run", "threads"), ("device", "run", "device"),
+                                ("data", "data", "root"), ("bundle", "data", "bundle"),
+                                ("threads", "run", "threads"), ("device", "run", "device"),
                                 ("vae", None, "vae")):
         value = getattr(args, flag, None)
         if not value:

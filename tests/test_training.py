@@ -453,3 +453,101 @@ def test_posterior_noise_zero_trains_on_the_vaes_posterior_means(tiny_model, tin
     assert float((c["latents"] - d["latents"]).abs().max()) > 1e-3      # posterior samples differ
     with pytest.raises(ConfigError, match="posterior_noise"):
         latents(-0.5, 0)
+
+
+def _bundle_config(tiny_dataset, tiny_model, out, max_frames=80, bundle=""):
+    from salad.diffusion.schedule import DiffusionConfig
+    from salad.models.denoiser import DenoiserConfig
+    from salad.training.configs import DenoiserTrainConfig
+
+    return DenoiserTrainConfig(
+        data=DataConfig(root=str(tiny_dataset), max_frames=max_frames, bundle=bundle), posterior_noise=0.0,
+        model=DenoiserConfig(latent_dim=8, dim=32, heads=4, ff_dim=64, layers=3, text_dim=384),
+        diffusion=DiffusionConfig(), optim=OptimConfig(batch_size=4, warmup_steps=1, max_steps=2),
+        run=RunConfig(out_dir=str(out), bf16=False, checkpoint_every=2), vae=str(tiny_model / "vae"))
+
+
+def test_a_latent_bundle_trains_on_the_batches_the_dataset_gives(tiny_model, tiny_dataset, tmp_path):
+    from salad.training.denoiser_task import DenoiserTask
+    from salad.training.latent_bundle import write_bundle
+
+    source = DenoiserTask(_bundle_config(tiny_dataset, tiny_model, tmp_path / "a"), show_progress=False)
+    part = 48 * 1024
+    out = write_bundle(source, tmp_path / "bundle", part_bytes=part, progress=False)
+    files = sorted(out.glob("part-*.safetensors"))
+    assert len(files) > 1 and all(f.stat().st_size <= part for f in files)
+    cfg = _bundle_config(tiny_dataset, tiny_model, tmp_path / "b", bundle=str(out))
+    cfg.data.root = str(tmp_path / "nowhere")                    # nothing is read from the dataset
+    bundled = DenoiserTask(cfg, show_progress=False)
+    for auto in (0.0, 1.0):
+        source.cfg.auto_length_prob = bundled.cfg.auto_length_prob = auto
+        a, b = source.batch(np.random.default_rng(5)), bundled.batch(np.random.default_rng(5))
+        assert a["latents"].shape == b["latents"].shape
+        assert torch.allclose(a["latents"], b["latents"], atol=2e-2, rtol=1e-2)        # fp16 storage
+        assert (a["frame_mask"] is None) == (b["frame_mask"] is None)
+        if a["frame_mask"] is not None:
+            assert torch.equal(a["frame_mask"], b["frame_mask"])
+        assert torch.equal(a["text"], b["text"]) and torch.equal(a["pooled"], b["pooled"])
+        assert torch.equal(a["noise"], b["noise"]) and torch.equal(a["timesteps"], b["timesteps"])
+    Trainer(bundled, cfg.optim, cfg.run, ema_decay=cfg.ema_decay).fit()
+    doc = json.loads((tmp_path / "b" / "model" / "config.json").read_text())
+    assert doc["config"]["text_encoder"] == source.text_spec
+
+
+def test_a_bundle_keeps_windows_of_motions_longer_than_the_canvas(tiny_model, tiny_dataset, tmp_path):
+    from salad.training.denoiser_task import DenoiserTask
+    from salad.training.latent_bundle import LatentBundle, write_bundle
+
+    source = DenoiserTask(_bundle_config(tiny_dataset, tiny_model, tmp_path / "a", max_frames=40), show_progress=False)
+    bundle = LatentBundle(write_bundle(source, tmp_path / "bundle", part_bytes=1 << 20, windows=3, progress=False))
+    long = [i for i, n in enumerate(bundle.lengths) if n > 40]
+    assert long and (bundle.window_of[long] >= 0).all()
+    i = long[0]
+    f = source.dataset.items[i].features
+    last, _ = source.vae.encode(*source._canvas([source.normalizer.normalize(f[len(f) - 40:])]))
+    assert torch.allclose(bundle.windows[bundle.window_of[i], -1], last[0], atol=1e-2)
+    drawn = {int(torch.argmin((bundle.windows[bundle.window_of[i]] - bundle.rows([i], np.random.default_rng(s))[0])
+                              .abs().flatten(1).amax(1))) for s in range(20)}
+    assert len(drawn) > 1                                        # a window drawn at random
+
+
+def test_a_bundle_refuses_what_it_cannot_give_and_parts_that_changed(tiny_model, tiny_dataset, tmp_path):
+    from salad.checkpoint import CheckpointError
+    from salad.config import ConfigError
+    from salad.training.denoiser_task import DenoiserTask
+    from salad.training.latent_bundle import write_bundle
+
+    source = DenoiserTask(_bundle_config(tiny_dataset, tiny_model, tmp_path / "a"), show_progress=False)
+    out = write_bundle(source, tmp_path / "bundle", part_bytes=1 << 20, progress=False)
+    cfg = _bundle_config(tiny_dataset, tiny_model, tmp_path / "b", bundle=str(out))
+    cfg.posterior_noise = 1.0
+    with pytest.raises(ConfigError, match="posterior_noise = 0"):
+        DenoiserTask(cfg, show_progress=False)
+    with pytest.raises(ConfigError, match="canvas"):
+        DenoiserTask(_bundle_config(tiny_dataset, tiny_model, tmp_path / "c", max_frames=40, bundle=str(out)),
+                     show_progress=False)
+    part = next(out.glob("part-*.safetensors"))
+    data = bytearray(part.read_bytes())
+    data[-3] ^= 0xFF
+    part.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError):
+        DenoiserTask(_bundle_config(tiny_dataset, tiny_model, tmp_path / "d", bundle=str(out)), show_progress=False)
+
+
+def test_the_cli_bundles_a_config_and_trains_from_the_bundle(tiny_model, tiny_dataset, tmp_path, capsys):
+    from salad.cli import main
+
+    cfg = denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=2)
+    cfg.write_text("posterior_noise = 0.0\n" + cfg.read_text())
+    vae = str(tiny_model / "vae")
+    assert main(["data", "bundle", "--config", str(cfg), "--vae", vae, "--out", str(tmp_path / "b"),
+                 "--part-mib", "0"]) == 2
+    assert "--part-mib must be > 0" in capsys.readouterr().err
+    assert main(["data", "bundle", "--config", str(cfg), "--vae", vae, "--out", str(tmp_path / "b"),
+                 "--part-mib", "0.05"]) == 0
+    assert "parts, the largest" in capsys.readouterr().out
+    assert all(f.stat().st_size <= 0.05 * 2 ** 20 for f in (tmp_path / "b").glob("*.safetensors"))
+    assert main(["train", "denoiser", "--config", str(cfg), "--vae", vae, "--bundle", str(tmp_path / "b"),
+                 "--data", str(tmp_path / "nowhere"), "--out-dir", str(tmp_path / "run")]) == 0
+    doc = json.loads((tmp_path / "run" / "model" / "config.json").read_text())
+    assert doc["meta"]["train_config"]["data"]["bundle"] == str(tmp_path / "b")

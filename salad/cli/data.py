@@ -63,6 +63,28 @@ def cmd_data_vocabulary(a) -> int:
     return 0
 
 
+def cmd_data_bundle(a) -> int:
+    from ..config import apply_overrides, load_toml
+    from ..training.configs import DenoiserTrainConfig
+    from ..training.denoiser_task import DenoiserTask
+    from ..training.latent_bundle import write_bundle
+    if a.part_mib <= 0 or a.windows < 1:
+        raise ValueError(f"--part-mib must be > 0 and --windows >= 1, got {a.part_mib} and {a.windows}")
+    cfg = load_toml(DenoiserTrainConfig, a.config)
+    apply_overrides(cfg, a)
+    if cfg.data.bundle:
+        raise ValueError(f"{a.config} trains from a bundle already (data.bundle = {cfg.data.bundle!r})")
+    cfg.data.balance = 1.0          # every motion's content is stored; the training run's balance applies then
+    if a.threads:
+        import torch
+        torch.set_num_threads(a.threads)
+    out = write_bundle(DenoiserTask(cfg), a.out, int(a.part_mib * 2 ** 20), windows=a.windows)
+    sizes = sorted(f.stat().st_size for f in out.glob("*.safetensors"))
+    print(f"wrote {out}: {len(sizes)} parts, the largest {sizes[-1] / 2 ** 20:.1f} MiB, "
+          f"{sum(sizes) / 2 ** 20:.1f} MiB in all")
+    return 0
+
+
 def add_parser(sub) -> None:
     data = sub.add_parser("data", help="build and inspect datasets").add_subparsers(dest="data_cmd", required=True)
     b = data.add_parser(
@@ -102,3 +124,17 @@ def add_parser(sub) -> None:
     v.add_argument("--model", default="assets/model", help="model directory holding denoiser/ (default: the embedded one)")
     v.add_argument("--split", default="train")
     v.set_defaults(func=cmd_data_vocabulary)
+    n = data.add_parser(
+        "bundle", help="a denoiser training config's data as VAE latents + text features, in parts of bounded size",
+        description="Encodes the training motions of a denoiser config with its VAE (posterior means; a motion longer "
+                    "than the canvas as --windows windows) and its captions with its text encoder, and writes them "
+                    "in parts of at most --part-mib MiB each. Train from it elsewhere (e.g. on a GPU machine that "
+                    "takes transfers of bounded size) with `salad train denoiser --bundle DIR` or data.bundle.")
+    n.add_argument("--config", required=True, help="denoiser training config (TOML)")
+    n.add_argument("--data", help="override data.root")
+    n.add_argument("--vae", help="override vae")
+    n.add_argument("--out", required=True, help="output directory")
+    n.add_argument("--part-mib", type=float, default=48.0, help="largest part in MiB (default: 48)")
+    n.add_argument("--windows", type=int, default=8, help="windows kept per motion longer than the canvas (default: 8)")
+    n.add_argument("--threads", type=int, default=0)
+    n.set_defaults(func=cmd_data_bundle)

@@ -55,6 +55,8 @@ def add_parser(sub) -> None:
     t.add_argument("--config", required=True, help="TOML config file")
     t.add_argument("--out-dir", help="override run.out_dir")
     t.add_argument("--data", help="override data.root")
+    t.add_argument("--bundle", help="denoiser, consistency: override data.bundle, a latent bundle (salad data bundle) "
+                                    "to train from instead of the dataset")
     t.add_argument("--max-steps", type=int, help="override optim.max_steps")
     t.add_argument("--threads", type=int, help="override run.threads (CPU threads for this process)")
     t.add_argument("--device", help="override run.device: auto (default: a CUDA GPU when torch sees one, else the "

@@ -487,7 +487,8 @@ _ALLOWED_KEYS = {
 }
 
 
-def _parse_spec(spec: str | dict | None) -> dict:
+def parse_text_encoder_spec(spec: str | dict | None) -> dict:
+    """A spec string or dict as a checked dict with at least "kind"."""
     if spec is None:
         return {"kind": "minilm"}
     if isinstance(spec, str):
@@ -517,7 +518,7 @@ def _parse_spec(spec: str | dict | None) -> dict:
 
 def load_text_encoder(spec: str | dict | None = None, cache_size: int = DEFAULT_CACHE_SIZE) -> TextEncoder:
     """Build a frozen text encoder from a spec string/dict (as returned by ``TextEncoder.spec()``)."""
-    parsed = _parse_spec(spec)
+    parsed = parse_text_encoder_spec(spec)
     max_tokens = parsed.get("max_tokens")
     if parsed["kind"] == "minilm":
         encoder: TextEncoder = MiniLMTextEncoder(

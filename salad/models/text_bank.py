@@ -13,20 +13,37 @@ class TextBank:
     def __init__(self, encoder, captions: Sequence[str], chunk: int = 256, progress: bool = True,
                  dtype: torch.dtype = torch.float32):
         # "" is always present: it is the unconditional row of classifier-free guidance
-        self.captions = list(dict.fromkeys([""] + list(captions)))
-        self.index = {c: i for i, c in enumerate(self.captions)}
+        captions = list(dict.fromkeys([""] + list(captions)))
         rows, lengths = [], []
-        self.pooled = torch.zeros(len(self.captions), encoder.dim)
-        for s in tqdm(range(0, len(self.captions), chunk), desc="text features", disable=not progress):
-            out = encoder.encode(self.captions[s:s + chunk])
+        pooled = torch.zeros(len(captions), encoder.dim)
+        for s in tqdm(range(0, len(captions), chunk), desc="text features", disable=not progress):
+            out = encoder.encode(captions[s:s + chunk])
             n = out.mask.sum(1)
             for b in range(len(n)):
                 rows.append(out.tokens[b, :int(n[b])].to(dtype))
                 lengths.append(int(n[b]))
-            self.pooled[s:s + len(n)] = out.pooled.float()
-        self.lengths = torch.tensor(lengths)
+            pooled[s:s + len(n)] = out.pooled.float()
+        self._hold(captions, torch.cat(rows), torch.tensor(lengths), pooled)
+
+    def _hold(self, captions: list[str], flat: torch.Tensor, lengths: torch.Tensor, pooled: torch.Tensor) -> None:
+        self.captions, self.flat, self.lengths, self.pooled = captions, flat, lengths.long(), pooled.float()
+        self.index = {c: i for i, c in enumerate(captions)}
         self.offsets = torch.cumsum(torch.cat((torch.zeros(1, dtype=torch.long), self.lengths[:-1])), 0)
-        self.flat = torch.cat(rows)
+
+    @classmethod
+    def from_tensors(cls, captions: Sequence[str], flat: torch.Tensor, lengths: torch.Tensor,
+                     pooled: torch.Tensor) -> "TextBank":
+        """A bank stored with tensors() (a latent bundle's), without the encoder."""
+        if len(captions) != len(lengths) or len(pooled) != len(lengths) or int(lengths.sum()) != len(flat):
+            raise ValueError(f"text bank of {len(captions)} captions: {len(lengths)} lengths, {len(pooled)} pooled "
+                             f"rows and {len(flat)} token rows (expected {int(lengths.sum())}) do not match")
+        bank = cls.__new__(cls)
+        bank._hold(list(captions), flat, lengths, pooled)
+        return bank
+
+    def tensors(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(token rows, caption lengths, pooled features): what from_tensors takes with the captions."""
+        return self.flat, self.lengths, self.pooled
 
     def gather(self, indices: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, L, dim) float32 tokens, zero past each caption's end, and the (B, L) validity mask."""

@@ -19,6 +19,9 @@ class DataConfig:
     # recorded; 0.5 = square root, so an action recorded 4 times is drawn 1/12 as often as one
     # recorded 600 times instead of 1/150; 0 = every class alike. Denoiser training only.
     balance: float = 1.0
+    # denoiser (and consistency) training only: a latent bundle (`salad data bundle`) to train from
+    # instead of root's features and the text encoder, e.g. on a GPU machine the dataset cannot reach
+    bundle: str = ""
 
 
 @dataclass

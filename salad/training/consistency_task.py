@@ -236,6 +236,6 @@ class ConsistencyTask:
         consistency = {"guidance": [self.cfg.guidance_min, self.cfg.guidance_max], "grid_steps": CONSISTENCY_GRID,
                        "teacher": {"path": self.cfg.teacher, "step": teacher_meta.get("step"),
                                    "sha256": self.teacher_doc["files"]["denoiser"]["sha256"]}}
-        save_denoiser(path, model.target, self.schedule.config, self.data.text_encoder.spec(), self.data.canvas,
+        save_denoiser(path, model.target, self.schedule.config, self.data.text_spec, self.data.canvas,
                       self.vae_checksum, meta={**meta, "consistency": consistency, "train_config": to_dict(self.cfg),
                                                "latent_scale": self.data.latent_scale})

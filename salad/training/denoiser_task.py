@@ -29,10 +29,11 @@ from ..data.labels import read_labels
 from ..models.denoiser import Denoiser
 from ..checkpoint import CheckpointError, load_state_strict
 from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum, vae_latent_checksums
-from ..models.text import load_text_encoder
+from ..models.text import load_text_encoder, parse_text_encoder_spec
 from ..models.text_bank import TextBank
 from .configs import DenoiserTrainConfig
 from .foot_loss import planted_foot_error
+from .latent_bundle import LatentBundle
 
 
 class DenoiserTraining(nn.Module):
@@ -60,18 +61,13 @@ class DenoiserTraining(nn.Module):
         return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}, x0
 
 
-def class_weights(dataset: MotionDataset, balance: float) -> np.ndarray | None:
-    """Probability of drawing each item so that a content class with n clips is drawn in
-    proportion to n**balance (None: uniform, balance = 1)."""
-    if not 0.0 <= balance <= 1.0:
-        raise ConfigError(f"data.balance must be in [0, 1], got {balance}")
-    if balance == 1.0:
-        return None
+def dataset_content(dataset: MotionDataset) -> list[str]:
+    """Each training motion's content class, from the dataset's labels.json."""
     try:
         labels = read_labels(dataset.root)
     except (FileNotFoundError, ValueError) as e:
-        raise ConfigError(f"data.balance = {balance} draws by content class, which needs the dataset's "
-                          f"labels ({e}); set data.balance = 1 to draw motions as recorded") from None
+        raise ConfigError(f"data.balance draws by content class, which needs the dataset's labels ({e}); "
+                          "set data.balance = 1 to draw motions as recorded") from None
     content = []
     for it in dataset.items:
         lab = labels.get(it.name.split("@")[0])
@@ -79,6 +75,17 @@ def class_weights(dataset: MotionDataset, balance: float) -> np.ndarray | None:
             raise ConfigError(f"{dataset.root}/labels.json: no labels for motion {it.name!r} (data.balance "
                               "needs every training motion labelled)")
         content.append(lab.content)
+    return content
+
+
+def class_weights(content: list[str] | None, balance: float) -> np.ndarray | None:
+    """Probability of drawing each item so that a content class with n clips is drawn in
+    proportion to n**balance (None: uniform, balance = 1)."""
+    if balance == 1.0:
+        return None
+    if content is None:
+        raise ConfigError(f"data.balance = {balance} draws by content class, and this data has no content "
+                          "labels; set data.balance = 1 to draw motions as recorded")
     names, cls, counts = np.unique(content, return_inverse=True, return_counts=True)
     w = counts[cls].astype(np.float64) ** (balance - 1.0)
     return w / w.sum()
@@ -97,22 +104,32 @@ class DenoiserTask:
         self.vae.requires_grad_(False)
         self.vae_checksum = vae_checksum(cfg.vae)
         d = cfg.data
-        self.dataset = MotionDataset(d.root, "train", min_frames=d.min_frames, max_frames=d.max_frames,
-                                     normalizer=self.normalizer)
         self.canvas = (d.max_frames // 4) * 4
-        self._by_length = np.argsort([min(len(it.features), self.canvas) for it in self.dataset.items], kind="stable")
-        self._weights = class_weights(self.dataset, d.balance)
         # VAE posteriors (mean, log-variance) over the canvas of motions that fit it, kept from
         # their first draw: the encoder is frozen and their input never changes, and the batched
         # encode was ~15% of a step (the cache grows to ~0.4 GB on the Bandai build). Longer
         # motions get a random window, encoded each time.
         self._posteriors: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
-        self.text_encoder = load_text_encoder(cfg.text_encoder)
-        if cfg.model.text_dim != self.text_encoder.dim:
-            raise ValueError(f"model.text_dim is {cfg.model.text_dim} but the {self.text_encoder.name} "
-                             f"text encoder gives {self.text_encoder.dim}-d features")
-        captions = [c for it in self.dataset.items for c in it.captions]
-        self.text = TextBank(self.text_encoder, captions, progress=show_progress, dtype=torch.bfloat16)
+        if not 0.0 <= d.balance <= 1.0:
+            raise ConfigError(f"data.balance must be in [0, 1], got {d.balance}")
+        self.bundle = None
+        if d.bundle:
+            self._from_bundle(cfg)
+        else:
+            self.dataset = MotionDataset(d.root, "train", min_frames=d.min_frames, max_frames=d.max_frames,
+                                         normalizer=self.normalizer)
+            self.lengths = np.array([len(it.features) for it in self.dataset.items], dtype=np.int64)
+            self.captions = [list(it.captions) for it in self.dataset.items]
+            self.content = dataset_content(self.dataset) if d.balance != 1.0 else None
+            self.text_encoder = load_text_encoder(cfg.text_encoder)
+            self.text_spec = self.text_encoder.spec()
+            if cfg.model.text_dim != self.text_encoder.dim:
+                raise ValueError(f"model.text_dim is {cfg.model.text_dim} but the {self.text_encoder.name} "
+                                 f"text encoder gives {self.text_encoder.dim}-d features")
+            self.text = TextBank(self.text_encoder, [c for cs in self.captions for c in cs], progress=show_progress,
+                                 dtype=torch.bfloat16)
+        self._by_length = np.argsort(np.minimum(self.lengths, self.canvas), kind="stable")
+        self._weights = class_weights(self.content, d.balance)
         self.schedule = NoiseSchedule(cfg.diffusion)
         torch.manual_seed(cfg.run.seed)
         self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule)
@@ -120,6 +137,28 @@ class DenoiserTask:
             raise ConfigError(f"contact_loss must be >= 0, got {cfg.contact_loss}")
         if not cfg.posterior_noise >= 0:
             raise ConfigError(f"posterior_noise must be >= 0, got {cfg.posterior_noise}")
+
+    def _from_bundle(self, cfg: DenoiserTrainConfig) -> None:
+        """Motions, latents and text features from a latent bundle (salad data bundle) instead
+        of the dataset and the text encoder."""
+        if cfg.posterior_noise != 0.0 or cfg.contact_loss > 0:
+            raise ConfigError("a latent bundle holds the posterior means alone: training from data.bundle needs "
+                              "posterior_noise = 0 and contact_loss = 0 (train on data.root for the others)")
+        self.bundle = b = LatentBundle(cfg.data.bundle)
+        if b.vae_checksum not in vae_latent_checksums(cfg.vae):
+            raise ConfigError(f"{cfg.data.bundle} holds another VAE's latents than {cfg.vae}'s")
+        if b.canvas != self.canvas or abs(b.latent_scale - self.latent_scale) > 1e-6:
+            raise ConfigError(f"{cfg.data.bundle}: made for a {b.canvas}-frame canvas at latent scale "
+                              f"{b.latent_scale:.6g}; this config has {self.canvas} frames (data.max_frames) and the "
+                              f"VAE scale {self.latent_scale:.6g}")
+        want = parse_text_encoder_spec(cfg.text_encoder)
+        if (any(b.text_spec.get(k) != want[k] for k in ("kind", "arch") if k in want)
+                or b.text_spec.get("dim") != cfg.model.text_dim):
+            raise ConfigError(f"{cfg.data.bundle} holds {b.text_spec.get('name')} text features "
+                              f"({b.text_spec.get('dim')}-d); this config uses {cfg.text_encoder} with "
+                              f"model.text_dim = {cfg.model.text_dim}")
+        self.lengths, self.captions, self.content = b.lengths, b.captions, b.content
+        self.text, self.text_spec = b.text, b.text_spec
 
     # ------------------------------------------------------------ batches
     def _canvas(self, crops: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -142,7 +181,7 @@ class DenoiserTask:
         auto = bool(rng.random() < self.cfg.auto_length_prob) if self.cfg.model.length_modes else False
         w, span = self._weights, min(len(self._by_length), 4 * B)
         if auto:
-            idx = rng.integers(0, len(self.dataset), size=B) if w is None else rng.choice(len(w), size=B, p=w)
+            idx = rng.integers(0, len(self.lengths), size=B) if w is None else rng.choice(len(w), size=B, p=w)
         elif w is None:
             # Fixed-length batches draw motions of similar length (a random window of the
             # length-sorted list), so padding, which costs as much as motion, stays small.
@@ -154,36 +193,22 @@ class DenoiserTask:
             start = min(max(anchor - span // 2, 0), len(self._by_length) - span)
             window = self._by_length[start:start + span]
             idx = window[rng.choice(span, size=B, p=w[window] / w[window].sum())]
-        items = [self.dataset.items[i] for i in idx]
         # Every motion is encoded followed by padding with activation 0 (the way the VAE saw
         # motion ends in training) on the whole canvas; fixed-length rows then keep only their
         # own latent frames (masked in time), auto-length rows keep the whole canvas.
-        fits = [len(it.features) <= self.canvas for it in items]
-        crops = [it.features[: (len(it.features) // 4) * 4] if ok else self._crop(it.features, rng, self.canvas)
-                 for it, ok in zip(items, fits)]
-        T = self.canvas if auto else max(len(c) for c in crops)
-        posterior = {b: self._posteriors[int(i)] for b, i in enumerate(idx) if int(i) in self._posteriors}
-        todo = [b for b in range(B) if b not in posterior]
-        if todo:
-            with torch.no_grad():
-                mu, logvar = self.vae.encode(
-                    *self._canvas([self.normalizer.normalize(crops[b]) for b in todo]))
-            for k, b in enumerate(todo):
-                posterior[b] = (mu[k].clone(), logvar[k].clone())
-                if fits[b]:
-                    self._posteriors[int(idx[b])] = posterior[b]
-        mu = torch.stack([posterior[b][0] for b in range(B)])
-        logvar = torch.stack([posterior[b][1] for b in range(B)])
-        noise = self.cfg.posterior_noise * torch.randn_like(mu) * torch.exp(0.5 * logvar)
-        latents = ((mu + noise) * self.latent_scale)[:, : T // 4]
+        frames = np.where(self.lengths[idx] <= self.canvas, self.lengths[idx] // 4 * 4, self.canvas)
+        T = self.canvas if auto else int(frames.max())
+        if self.bundle is not None:
+            latents, crops = self.bundle.rows(idx, rng) * self.latent_scale, None
+        else:
+            latents, crops = self._dataset_latents(idx, rng)
+        latents = latents[:, : T // 4]
         if auto:
             frame_mask = None
         else:
-            frame_mask = torch.zeros(B, T // 4, dtype=torch.bool)
-            for b, c in enumerate(crops):
-                frame_mask[b, :len(c) // 4] = True
+            frame_mask = torch.arange(T // 4)[None, :] < torch.as_tensor(frames // 4)[:, None]
             latents = latents * frame_mask[:, :, None, None]
-        captions = [it.captions[int(rng.integers(len(it.captions)))] for it in items]
+        captions = [self.captions[i][int(rng.integers(len(self.captions[i])))] for i in idx]
         drop = rng.random(B) < self.cfg.text_dropout
         captions = ["" if d else c for c, d in zip(captions, drop)]
         text, text_mask, pooled = self.text.batch(captions)
@@ -197,6 +222,28 @@ class DenoiserTask:
                 "pooled": pooled, "auto": torch.full((B,), auto),
                 "timesteps": torch.randint(0, self.schedule.config.train_steps, (B,), generator=g),
                 "noise": torch.randn(latents.shape, generator=g)}
+
+    def _dataset_latents(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, list[np.ndarray]]:
+        """Scaled latents on the canvas of motions `idx` (posterior samples at posterior_noise), and
+        the feature crops they encode."""
+        items = [self.dataset.items[i] for i in idx]
+        fits = [len(it.features) <= self.canvas for it in items]
+        crops = [it.features[: (len(it.features) // 4) * 4] if ok else self._crop(it.features, rng, self.canvas)
+                 for it, ok in zip(items, fits)]
+        posterior = {b: self._posteriors[int(i)] for b, i in enumerate(idx) if int(i) in self._posteriors}
+        todo = [b for b in range(len(idx)) if b not in posterior]
+        if todo:
+            with torch.no_grad():
+                mu, logvar = self.vae.encode(
+                    *self._canvas([self.normalizer.normalize(crops[b]) for b in todo]))
+            for k, b in enumerate(todo):
+                posterior[b] = (mu[k].clone(), logvar[k].clone())
+                if fits[b]:
+                    self._posteriors[int(idx[b])] = posterior[b]
+        mu = torch.stack([posterior[b][0] for b in range(len(idx))])
+        logvar = torch.stack([posterior[b][1] for b in range(len(idx))])
+        noise = self.cfg.posterior_noise * torch.randn_like(mu) * torch.exp(0.5 * logvar)
+        return (mu + noise) * self.latent_scale, crops
 
     def loss(self, model: nn.Module, batch: dict):
         loss, logs, x0 = model(batch)
@@ -223,7 +270,7 @@ class DenoiserTask:
         if trained_on and trained_on not in vae_latent_checksums(self.cfg.vae):
             raise CheckpointError(f"{path} was trained on another VAE's latents than {self.cfg.vae}'s; "
                                   "pass the VAE it was trained with (--vae)")
-        theirs, mine = doc["config"].get("text_encoder", {}), self.text_encoder.spec()
+        theirs, mine = doc["config"].get("text_encoder", {}), self.text_spec
         if theirs.get("name") != mine.get("name"):
             raise CheckpointError(f"{path} was trained with the {theirs.get('name')} text encoder, this config "
                                   f"uses {mine.get('name')}")
@@ -231,6 +278,6 @@ class DenoiserTask:
         return doc.get("meta", {})
 
     def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
-        save_denoiser(path, model.denoiser, self.schedule.config, self.text_encoder.spec(), self.canvas,
+        save_denoiser(path, model.denoiser, self.schedule.config, self.text_spec, self.canvas,
                       self.vae_checksum, meta={**meta, "train_config": to_dict(self.cfg),
                                                "latent_scale": self.latent_scale})

@@ -1,0 +1,131 @@
+"""Denoiser training data without the motion dataset or the text encoder: the frozen VAE's
+posterior means and the captions' token features, split into parts of bounded size.
+
+A GPU lent for minutes is reached by transfers of at most 64 MiB. The Bandai build's
+features are 0.4 GB; its training motions' latents are ~58 MB in fp16 and their captions'
+token features ~120 MB in bf16, so the bundle goes over in parts, each with the checksum that
+load_checkpoint verifies. Latents are stored per motion only as far as they differ from
+those of an empty canvas (the encoder sees ~3 latent frames past a motion's end; beyond that
+every motion's padding encodes alike), and a motion longer than the canvas as a few windows at
+evenly spaced offsets instead of a fresh random window per draw.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from ..config import ConfigError
+from ..models.text_bank import TextBank
+
+KIND = "latent-bundle"
+TEXT_CHUNK_ROWS = 16384          # token rows per stored tensor, so the text spreads over parts
+HEADER_BYTES = 256               # a tensor's share of its file's safetensors header, at most
+
+
+@torch.no_grad()
+def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progress: bool = True) -> Path:
+    """Write the training data of `task` (a DenoiserTask over a dataset) as a bundle at `out`."""
+    from tqdm import tqdm
+
+    if part_bytes <= HEADER_BYTES:
+        raise ValueError(f"parts must hold more than {HEADER_BYTES} bytes, got {part_bytes}")
+    if windows < 1:
+        raise ValueError(f"windows must be >= 1, got {windows}")
+    from .denoiser_task import dataset_content
+
+    items = task.dataset.items
+    canvas = task.canvas
+    try:
+        content = dataset_content(task.dataset)
+    except ConfigError:           # no labels.json: a bundle that trains with data.balance = 1 only
+        content = None
+
+    def encode(crops: list[np.ndarray]) -> torch.Tensor:
+        mu, _ = task.vae.encode(*task._canvas([task.normalizer.normalize(c) for c in crops]))
+        return mu
+
+    empty = encode([np.zeros((0, task.dataset.dim), np.float32)])[0]
+    tensors: dict[str, torch.Tensor] = {"empty": empty}
+    fits = [i for i, it in enumerate(items) if len(it.features) <= canvas]
+    for s in tqdm(range(0, len(fits), 64), desc="latents", disable=not progress):
+        ids = fits[s:s + 64]
+        mu = encode([items[i].features[: len(items[i].features) // 4 * 4] for i in ids])
+        for k, i in enumerate(ids):
+            differs = torch.nonzero((mu[k] - empty).abs().flatten(1).amax(1) > 1e-6).flatten()
+            keep = int(differs.max()) + 1 if len(differs) else 0
+            tensors[f"prefix.{i}"] = mu[k, :keep].to(torch.float16)
+    for i, it in enumerate(items):
+        if len(it.features) > canvas:
+            starts = np.round(np.linspace(0, len(it.features) - canvas, windows)).astype(int)
+            tensors[f"windows.{i}"] = encode([it.features[s:s + canvas] for s in starts]).to(torch.float16)
+    flat, lengths, pooled = task.text.tensors()
+    rows = max(1, min(TEXT_CHUNK_ROWS, (part_bytes - HEADER_BYTES) // (flat.shape[1] * flat.element_size())))
+    for j, s in enumerate(range(0, len(flat), rows)):
+        tensors[f"text.flat.{j}"] = flat[s:s + rows]
+    tensors["text.lengths"], tensors["text.pooled"] = lengths, pooled
+
+    parts: dict[str, dict[str, torch.Tensor]] = {}
+    size = part_bytes
+    for name, t in tensors.items():
+        n = t.numel() * t.element_size() + HEADER_BYTES
+        if n > part_bytes:
+            raise ValueError(f"{name} alone is {n / 2 ** 20:.1f} MiB, more than a part may hold")
+        if size + n > part_bytes:
+            parts[f"part-{len(parts)}"] = {}
+            size = 0
+        parts[f"part-{len(parts) - 1}"][name] = t.contiguous()
+        size += n
+    config = {"canvas": canvas, "latent_scale": task.latent_scale, "vae_checksum": task.vae_checksum,
+              "text_encoder": task.text_spec, "text_captions": task.text.captions,
+              "lengths": [len(it.features) for it in items], "captions": [list(it.captions) for it in items],
+              "content": content, "windows": windows}
+    return save_checkpoint(out, KIND, config, parts, {"motions": len(items), "source": str(task.cfg.data.root)})
+
+
+class LatentBundle:
+    """A bundle read back: per-motion lengths, captions and content classes, the posterior means
+    on the canvas, and the text bank."""
+
+    def __init__(self, path: str | Path):
+        doc, parts = load_checkpoint(path, kind=KIND)
+        c = doc["config"]
+        t: dict[str, torch.Tensor] = {}
+        for p in parts.values():
+            t.update(p)
+        self.path = Path(path)
+        self.canvas, self.latent_scale = int(c["canvas"]), float(c["latent_scale"])
+        self.vae_checksum, self.text_spec = c["vae_checksum"], c["text_encoder"]
+        self.lengths = np.asarray(c["lengths"], dtype=np.int64)
+        self.captions: list[list[str]] = c["captions"]
+        self.content: list[str] | None = c["content"]
+        empty = t["empty"].float()
+        n = len(self.lengths)
+        self.means = empty.expand(n, *empty.shape).clone()
+        self.window_of = np.full(n, -1)
+        wins = []
+        for i in range(n):
+            if f"prefix.{i}" in t:
+                p = t[f"prefix.{i}"].float()
+                self.means[i, :len(p)] = p
+            elif f"windows.{i}" in t:
+                self.window_of[i] = len(wins)
+                wins.append(t[f"windows.{i}"].float())
+            else:
+                raise CheckpointError(f"{path}: no latents for motion {i}")
+        self.windows = torch.stack(wins) if wins else torch.zeros(0, int(c["windows"]), *empty.shape)
+        chunks = sorted((k for k in t if k.startswith("text.flat.")), key=lambda k: int(k.rsplit(".", 1)[1]))
+        self.text = TextBank.from_tensors(c["text_captions"], torch.cat([t[k] for k in chunks]),
+                                          t["text.lengths"], t["text.pooled"])
+
+    def rows(self, idx: Sequence[int], rng: np.random.Generator) -> torch.Tensor:
+        """Posterior means on the canvas of motions `idx`; a motion longer than the canvas gives one
+        of its windows, drawn at random."""
+        out = self.means[torch.as_tensor(np.asarray(idx), dtype=torch.long)]
+        for b, i in enumerate(idx):
+            if self.window_of[i] >= 0:
+                out[b] = self.windows[self.window_of[i], int(rng.integers(self.windows.shape[1]))]
+        return out
