@@ -83,18 +83,34 @@ class Pipeline:
         vocabulary. Every generated motion carries these as `motion.warnings`."""
         return self.prompt_check.warnings(self.check_prompt(prompt)) if self.prompt_check else []
 
-    def frames_for(self, seconds) -> int | None:
-        """Requested duration -> frame count (a multiple of 4), or None for auto length."""
-        if seconds is None or (isinstance(seconds, str) and seconds.lower() == "auto"):
+    def frames_for(self, seconds, prompt: str | None = None) -> int | None:
+        """Requested duration -> frame count (a multiple of 4), or None where the model is to end the motion
+        itself (its activation channel, MoLA). seconds=None or "auto": the length the training data gives
+        motions like `prompt` (PromptCheck.length_prior) where the model ships one, else the model's own;
+        "model": always the model's own."""
+        if isinstance(seconds, str) and seconds.strip().lower() in ("auto", "model"):
+            seconds = None if seconds.strip().lower() == "auto" else "model"
+        if seconds == "model":
             return None
+        if seconds is None:
+            prior = self.prompt_check.length_prior(prompt) if self.prompt_check and prompt else None
+            if prior is None:
+                return None
+            return max(MIN_AUTO_FRAMES, min(self.canvas_frames, int(round(prior * FPS / 4)) * 4))
         try:
             s = float(seconds)
         except (TypeError, ValueError):
-            raise ValueError(f"seconds must be a number or 'auto', got {seconds!r}") from None
+            raise ValueError(f"seconds must be a number, 'auto' or 'model', got {seconds!r}") from None
         lo, hi = MIN_AUTO_FRAMES / FPS, self.max_seconds
         if not math.isfinite(s) or not lo <= s <= hi:
             raise ValueError(f"seconds must be between {lo:g} and {hi:g}, got {seconds!r}")
         return max(MIN_AUTO_FRAMES, int(round(s * FPS / 4)) * 4)
+
+    @staticmethod
+    def length_source(seconds) -> str:
+        """How frames_for(seconds) chose a length that it did choose: "requested" or "prior"."""
+        return "prior" if seconds is None or (isinstance(seconds, str) and seconds.strip().lower() == "auto") \
+            else "requested"
 
     def check_sampling(self, steps, cfg, sampler, batch=1) -> tuple[int, float, str, int]:
         """Checked (steps, cfg, sampler, batch); steps=None is the sampler's default
@@ -193,11 +209,12 @@ class Pipeline:
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, frames: int | None, texts: list[str], seed: int,
-               foot_lock: bool = True) -> list[Motion]:
+               foot_lock: bool = True, length: str = "requested") -> list[Motion]:
         """Latents -> motions; with frames=None each motion ends where its activation drops.
         foot_lock cleans the joints (salad.motion.cleanup: bones held at constant length, the feet the
         decoder marks as planted pinned): the joints carry the clean-up, the features stay the
-        decoder's output, info["foot_lock"] says what moved."""
+        decoder's output, info["foot_lock"] says what moved. info["length"] says where the length came
+        from: "requested", "prior" (the training data's, for auto length) or "model" (the activation's)."""
         feats, act_logits = self.vae.decode(latents / self.latent_scale)
         feats = self.normalizer.denormalize(feats.float()).cpu().numpy()
         out = []
@@ -206,7 +223,7 @@ class Pipeline:
             if frames is None and act_logits is not None:
                 n = end_of_motion(torch.sigmoid(act_logits[b]).cpu().numpy())
             f = feats[b, :n]
-            joints, info = features_to_joints(f), {"auto_length": frames is None}
+            joints, info = features_to_joints(f), {"length": "model" if frames is None else length}
             if foot_lock:
                 joints, info["foot_lock"] = clean_motion(joints, f)
             out.append(Motion(joints=joints, features=f, text=texts[b], seed=seed, info=info,
@@ -217,12 +234,13 @@ class Pipeline:
     def generate(self, prompt: str, seconds: float | str | None = None, seed: int = 0, steps: int | None = None,
                  cfg: float = 7.5, sampler: str = "ddim", batch: int = 1, return_attention: bool = False,
                  progress: Progress | None = None, foot_lock: bool = True):
-        """Text -> Motion (or a list of `batch` motions). seconds=None lets the model choose the length;
+        """Text -> Motion (or a list of `batch` motions). seconds=None (or "auto") takes the length the
+        training data gives such motions, "model" lets the model end the motion itself (frames_for);
         foot_lock=False returns the decoder's joints without the foot clean-up. sampler: "ddim" (the
         paper's), "dpm" (DPM-Solver++) or "consistency" (the distilled student, 1-4 steps, one forward
         per step); steps=None is the sampler's default (50, 50, 4)."""
         prompt = self.check_prompt(prompt)
-        frames = self.frames_for(seconds)
+        frames = self.frames_for(seconds, prompt)
         steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
         canvas = frames or self.canvas_frames
         text = self.sampler_text([prompt] * batch, sampler)
@@ -232,7 +250,7 @@ class Pipeline:
         with self.network(sampler).controlled(store):
             z = self.denoise(text, self.noise(batch, canvas, seed), sampler, steps, cfg, auto=frames is None,
                              seed=seed, on_step=on_step)
-        motions = self.decode(z, frames, [prompt] * batch, seed, foot_lock)
+        motions = self.decode(z, frames, [prompt] * batch, seed, foot_lock, length=self.length_source(seconds))
         if store is not None:
             for b, m in enumerate(motions):
                 m.attention = store.maps(b, frames=m.frames)
@@ -378,7 +396,7 @@ class Pipeline:
         spec = EditSpec.from_arguments(spec, mode=mode, target=target_prompt, tau=tau, reweight=reweight,
                                        mirror=mirror, self_inject=self_inject)
         source_prompt, target_prompt = self.check_edit(source_prompt, spec)
-        frames = self.frames_for(seconds)
+        frames = self.frames_for(seconds, source_prompt)
         steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
         canvas = frames or self.canvas_frames
 
@@ -392,7 +410,8 @@ class Pipeline:
         with self.network(sampler).controlled(edit):
             z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, shared_noise=True,
                              on_step=on_step)
-        source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock)
+        source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock,
+                                     length=self.length_source(seconds))
         source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
         params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler=sampler)
         return EditResult(source, edited, source.attention, edited.attention, params)

@@ -127,3 +127,48 @@ def test_cli_writes_the_vocabulary_and_generate_prints_warnings(tiny_model, tiny
     assert quiet.returncode == 0 and "warning:" not in quiet.stderr
     bad = run("data", "vocabulary", str(tmp_path / "missing"), "--model", str(model))
     assert bad.returncode == 2 and "salad: error:" in bad.stderr
+
+
+def test_the_vocabulary_keeps_each_examples_motion_length_and_auto_length_follows_it(tiny_model, tiny_dataset,
+                                                                                     tmp_path):
+    import numpy as np
+
+    from salad.models.text import load_text_encoder
+    from salad.pipeline import load_pipeline
+
+    vocab = build_vocabulary(tiny_dataset)
+    lengths = {}
+    for name in (tiny_dataset / "train.txt").read_text().split():
+        n = len(np.load(tiny_dataset / "new_joint_vecs" / f"{name}.npy")) / 20
+        for line in (tiny_dataset / "texts" / f"{name}.txt").read_text().splitlines():
+            lengths.setdefault(line.split("#")[0], []).append(n)
+    assert len(vocab.durations) == len(vocab.examples)
+    assert all(d == pytest.approx(np.median(lengths[c]), abs=0.01) for (_, c), d in zip(vocab.examples,
+                                                                                       vocab.durations))
+    model = tmp_path / "model"
+    shutil.copytree(tiny_model, model)
+    save_vocabulary(vocab, load_text_encoder("minilm"), model)
+    pipe = load_pipeline(model)
+    for (_, caption), d in zip(vocab.examples, vocab.durations):       # a caption is its own nearest example
+        assert pipe.prompt_check.length_prior(caption, k=1) == pytest.approx(d)
+    prior = pipe.prompt_check.length_prior("a person walks forward")
+    assert min(vocab.durations) <= prior <= max(vocab.durations)
+    frames = pipe.frames_for(None, "a person walks forward")
+    assert frames == min(pipe.canvas_frames, int(round(prior * 20 / 4)) * 4)
+    auto = pipe.generate("a person walks forward", seed=0, steps=2)
+    assert auto.frames == frames and auto.info["length"] == "prior"
+    assert pipe.generate("a person walks forward", seconds="auto", seed=0, steps=2).frames == frames
+    own = pipe.generate("a person walks forward", seconds="model", seed=0, steps=2)
+    assert own.info["length"] == "model" and own.frames % 4 == 0
+    assert pipe.generate("a person walks forward", seconds=1.0, seed=0, steps=2).info["length"] == "requested"
+    with pytest.raises(ValueError, match="'auto' or 'model'"):
+        pipe.frames_for("forever")
+    # a vocabulary written before lengths were kept still loads, and auto length is then the model's own
+    doc = json.loads((model / VOCABULARY_FILE).read_text())
+    del doc["durations"]
+    (model / VOCABULARY_FILE).write_text(json.dumps(doc))
+    assert load_pipeline(model).frames_for(None, "a person walks forward") is None
+    doc["durations"] = [1.0]
+    (model / VOCABULARY_FILE).write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="durations"):
+        load_pipeline(model)

@@ -11,6 +11,7 @@ A prompt far from everything trained is still answered, with the nearest thing t
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,12 +24,16 @@ from safetensors.torch import load_file, save_file
 from ..data.captions import CONTENT_PHRASES, STYLE_PHRASES
 from ..data.dataset import read_captions, read_split
 from ..data.labels import read_labels
+from ..motion.representation import FPS
 from ..files import atomic_path, atomic_write_text
 from .text import TextEncoder, split_words
 
 VOCABULARY_FILE = "vocabulary.json"
 FEATURES_FILE = "vocabulary.safetensors"
 EXAMPLES_PER_ACTION = 24
+# example captions whose motions' lengths the length prior takes the median of: a third of an action's
+# examples, so that it follows the prompt's manner words within the action
+LENGTH_NEIGHBOURS = 8
 
 # A prompt whose best cosine similarity (mean-pooled text-encoder features) to the training caption
 # sample is below this asks for something the model has not learned. With MiniLM on the Bandai
@@ -57,19 +62,28 @@ class Vocabulary:
     styles: list[str]                   # manner words of the trained styles, for messages
     words: frozenset[str]               # every word of the training captions
     source: str = ""
+    # seconds of the motions each example caption describes (their median), parallel to examples; empty in
+    # vocabularies written before lengths were kept
+    durations: tuple[float, ...] = ()
 
     def to_json(self) -> dict:
         return {"source": self.source, "actions": self.actions, "examples": [list(e) for e in self.examples],
-                "styles": self.styles, "words": sorted(self.words)}
+                "styles": self.styles, "words": sorted(self.words), "durations": list(self.durations)}
 
     @classmethod
     def from_json(cls, doc: dict, where: str) -> "Vocabulary":
         try:
-            return cls(actions=dict(doc["actions"]), examples=[(str(a), str(c)) for a, c in doc["examples"]],
-                       styles=[str(s) for s in doc["styles"]], words=frozenset(doc["words"]),
-                       source=str(doc.get("source", "")))
+            vocab = cls(actions=dict(doc["actions"]), examples=[(str(a), str(c)) for a, c in doc["examples"]],
+                        styles=[str(s) for s in doc["styles"]], words=frozenset(doc["words"]),
+                        source=str(doc.get("source", "")),
+                        durations=tuple(float(d) for d in doc.get("durations", ())))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{where}: not a vocabulary file ({e})") from None
+        if vocab.durations and (len(vocab.durations) != len(vocab.examples)
+                                or not all(math.isfinite(d) and d > 0 for d in vocab.durations)):
+            raise ValueError(f"{where}: {len(vocab.durations)} durations for {len(vocab.examples)} examples, or one "
+                             "that is not a positive number of seconds")
+        return vocab
 
 
 def build_vocabulary(root: str | Path, split: str = "train", per_action: int = EXAMPLES_PER_ACTION,
@@ -83,12 +97,15 @@ def build_vocabulary(root: str | Path, split: str = "train", per_action: int = E
     except FileNotFoundError:
         labels = {}
     by_action: dict[str, list[str]] = {}
+    seconds: dict[tuple[str, str], list[float]] = {}     # (action, caption) -> the lengths of its motions
     styles: set[str] = set()
     words: set[str] = set()
     for name in names:
         path = root / "texts" / f"{name}.txt"
-        if not path.is_file():
+        motion = root / "new_joint_vecs" / f"{name}.npy"
+        if not path.is_file() or not motion.is_file():
             continue
+        n = len(np.load(motion, mmap_mode="r"))
         captions = [c.text for c in read_captions(path)]
         for caption in captions:
             words.update(split_words(caption))
@@ -99,6 +116,8 @@ def build_vocabulary(root: str | Path, split: str = "train", per_action: int = E
         else:
             for caption in captions:
                 by_action.setdefault(caption, []).append(caption)
+        for caption in captions:
+            seconds.setdefault((lab.content if lab is not None else caption, caption), []).append(n / FPS)
     if not by_action:
         raise ValueError(f"{root}: split {split!r} has no captioned motions to take a vocabulary from")
     rng = np.random.default_rng(seed)
@@ -110,7 +129,8 @@ def build_vocabulary(root: str | Path, split: str = "train", per_action: int = E
     actions = {a: (f"a person {CONTENT_PHRASES[a][0].format(poss='their')}" if a in CONTENT_PHRASES else a)
                for a in sorted(by_action)}
     manner = sorted({adv for s in styles for adv in STYLE_PHRASES.get(s, ((), ()))[0] if adv and " " not in adv})
-    return Vocabulary(actions, examples, manner, frozenset(words), source=f"{root.name}/{split}")
+    durations = tuple(round(float(np.median(seconds[e])), 2) for e in examples)
+    return Vocabulary(actions, examples, manner, frozenset(words), source=f"{root.name}/{split}", durations=durations)
 
 
 def save_vocabulary(vocab: Vocabulary, encoder: TextEncoder, out: str | Path) -> Path:
@@ -181,6 +201,15 @@ class PromptCheck:
             best[action] = max(best.get(action, -1.0), s)
         ranked = sorted(best.items(), key=lambda kv: -kv[1])[:k]
         return [(self.vocab.actions.get(a, a), round(s, 3)) for a, s in ranked]
+
+    def length_prior(self, prompt: str, k: int = LENGTH_NEIGHBOURS) -> float | None:
+        """Seconds a motion for `prompt` lasts in the training data: the median length of the motions of
+        the `k` example captions nearest to it (None when the vocabulary keeps no lengths)."""
+        if not self.vocab.durations:
+            return None
+        q = torch.nn.functional.normalize(self.encoder.encode([prompt]).pooled.float().cpu(), dim=-1)[0]
+        nearest = torch.topk(self.features @ q, min(k, len(self.vocab.durations))).indices.tolist()
+        return float(np.median([self.vocab.durations[i] for i in nearest]))
 
     def unknown_words(self, prompt: str) -> list[str]:
         """Words of `prompt` no training caption uses (numbers and function words aside)."""
