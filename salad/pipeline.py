@@ -84,23 +84,21 @@ class Pipeline:
         return self.prompt_check.warnings(self.check_prompt(prompt)) if self.prompt_check else []
 
     def frames_for(self, seconds, prompt: str | None = None) -> int | None:
-        """Requested duration -> frame count (a multiple of 4), or None where the model is to end the motion
-        itself (its activation channel, MoLA). seconds=None or "auto": the length the training data gives
-        motions like `prompt` (PromptCheck.length_prior) where the model ships one, else the model's own;
-        "model": always the model's own."""
-        if isinstance(seconds, str) and seconds.strip().lower() in ("auto", "model"):
-            seconds = None if seconds.strip().lower() == "auto" else "model"
-        if seconds == "model":
+        """Requested duration -> frame count (a multiple of 4), or None for auto length (the model ends the
+        motion itself: its activation channel, MoLA). seconds="prior": the length the training data gives
+        motions like `prompt` (PromptCheck.length_prior), for models that ship a vocabulary with lengths."""
+        if seconds is None or (isinstance(seconds, str) and seconds.strip().lower() == "auto"):
             return None
-        if seconds is None:
+        if isinstance(seconds, str) and seconds.strip().lower() == "prior":
             prior = self.prompt_check.length_prior(prompt) if self.prompt_check and prompt else None
             if prior is None:
-                return None
+                raise ValueError("seconds='prior' needs a prompt and a model whose vocabulary keeps motion lengths "
+                                 "(salad data vocabulary writes one); use a number or 'auto'")
             return max(MIN_AUTO_FRAMES, min(self.canvas_frames, int(round(prior * FPS / 4)) * 4))
         try:
             s = float(seconds)
         except (TypeError, ValueError):
-            raise ValueError(f"seconds must be a number, 'auto' or 'model', got {seconds!r}") from None
+            raise ValueError(f"seconds must be a number, 'auto' or 'prior', got {seconds!r}") from None
         lo, hi = MIN_AUTO_FRAMES / FPS, self.max_seconds
         if not math.isfinite(s) or not lo <= s <= hi:
             raise ValueError(f"seconds must be between {lo:g} and {hi:g}, got {seconds!r}")
@@ -109,8 +107,7 @@ class Pipeline:
     @staticmethod
     def length_source(seconds) -> str:
         """How frames_for(seconds) chose a length that it did choose: "requested" or "prior"."""
-        return "prior" if seconds is None or (isinstance(seconds, str) and seconds.strip().lower() == "auto") \
-            else "requested"
+        return "prior" if isinstance(seconds, str) and seconds.strip().lower() == "prior" else "requested"
 
     def check_sampling(self, steps, cfg, sampler, batch=1) -> tuple[int, float, str, int]:
         """Checked (steps, cfg, sampler, batch); steps=None is the sampler's default
@@ -214,7 +211,7 @@ class Pipeline:
         foot_lock cleans the joints (salad.motion.cleanup: bones held at constant length, the feet the
         decoder marks as planted pinned): the joints carry the clean-up, the features stay the
         decoder's output, info["foot_lock"] says what moved. info["length"] says where the length came
-        from: "requested", "prior" (the training data's, for auto length) or "model" (the activation's)."""
+        from: "requested", "prior" (the training data's) or "model" (the activation's, auto length)."""
         feats, act_logits = self.vae.decode(latents / self.latent_scale)
         feats = self.normalizer.denormalize(feats.float()).cpu().numpy()
         out = []
@@ -234,8 +231,8 @@ class Pipeline:
     def generate(self, prompt: str, seconds: float | str | None = None, seed: int = 0, steps: int | None = None,
                  cfg: float = 7.5, sampler: str = "ddim", batch: int = 1, return_attention: bool = False,
                  progress: Progress | None = None, foot_lock: bool = True):
-        """Text -> Motion (or a list of `batch` motions). seconds=None (or "auto") takes the length the
-        training data gives such motions, "model" lets the model end the motion itself (frames_for);
+        """Text -> Motion (or a list of `batch` motions). seconds=None (or "auto") lets the model choose the
+        length, "prior" takes the one the training data gives such motions (frames_for);
         foot_lock=False returns the decoder's joints without the foot clean-up. sampler: "ddim" (the
         paper's), "dpm" (DPM-Solver++) or "consistency" (the distilled student, 1-4 steps, one forward
         per step); steps=None is the sampler's default (50, 50, 4)."""

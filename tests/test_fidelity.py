@@ -114,3 +114,18 @@ def test_reference_clips_follow_the_prompts_style_and_widen_only_when_too_few(tm
         {n: {"content": "walk", "style": styles[n], "split": split[n]} for n in names}))
     clips, used = reference_clips(root, walk, read_labels(root))
     assert used == "test" and len(clips) == sum(1 for n in names if split[n] == "test" and styles[n] == "normal")
+
+
+def test_a_fidelity_run_with_the_length_prior_generates_at_the_priors_length(tmp_path):
+    root = write_tiny_dataset(tmp_path / "data")
+    names = [l for f in ("train", "val", "test") for l in (root / f"{f}.txt").read_text().split()]
+    split = {n: f for f in ("train", "val", "test") for n in (root / f"{f}.txt").read_text().split()}
+    (root / "labels.json").write_text(json.dumps(
+        {n: {"content": "walk", "style": "normal", "split": split[n]} for n in names}))
+    pipe = load_pipeline()
+    with pytest.raises(ValueError, match="'auto' or 'prior'"):
+        evaluate_fidelity(pipe, root, length="longest")
+    res = evaluate_fidelity(pipe, root, seeds=1, steps=2, sampler="dpm", classes=["walk"], length="prior")
+    (row,) = res["rows"]
+    assert sorted(s["frames"] for s in row["samples"]) == sorted(pipe.frames_for("prior", p) for p in HELD_OUT["walk"])
+    assert res["settings"]["length"] == "prior" and "the length prior" in report_markdown(res)

@@ -129,8 +129,7 @@ def test_cli_writes_the_vocabulary_and_generate_prints_warnings(tiny_model, tiny
     assert bad.returncode == 2 and "salad: error:" in bad.stderr
 
 
-def test_the_vocabulary_keeps_each_examples_motion_length_and_auto_length_follows_it(tiny_model, tiny_dataset,
-                                                                                     tmp_path):
+def test_the_vocabulary_keeps_each_examples_motion_length_for_a_length_prior(tiny_model, tiny_dataset, tmp_path):
     import numpy as np
 
     from salad.models.text import load_text_encoder
@@ -153,21 +152,21 @@ def test_the_vocabulary_keeps_each_examples_motion_length_and_auto_length_follow
         assert pipe.prompt_check.length_prior(caption, k=1) == pytest.approx(d)
     prior = pipe.prompt_check.length_prior("a person walks forward")
     assert min(vocab.durations) <= prior <= max(vocab.durations)
-    frames = pipe.frames_for(None, "a person walks forward")
+    frames = pipe.frames_for("prior", "a person walks forward")
     assert frames == min(pipe.canvas_frames, int(round(prior * 20 / 4)) * 4)
-    auto = pipe.generate("a person walks forward", seed=0, steps=2)
-    assert auto.frames == frames and auto.info["length"] == "prior"
-    assert pipe.generate("a person walks forward", seconds="auto", seed=0, steps=2).frames == frames
-    own = pipe.generate("a person walks forward", seconds="model", seed=0, steps=2)
+    fixed = pipe.generate("a person walks forward", seconds="prior", seed=0, steps=2)
+    assert fixed.frames == frames and fixed.info["length"] == "prior"
+    own = pipe.generate("a person walks forward", seed=0, steps=2)
     assert own.info["length"] == "model" and own.frames % 4 == 0
     assert pipe.generate("a person walks forward", seconds=1.0, seed=0, steps=2).info["length"] == "requested"
-    with pytest.raises(ValueError, match="'auto' or 'model'"):
+    with pytest.raises(ValueError, match="'auto' or 'prior'"):
         pipe.frames_for("forever")
-    # a vocabulary written before lengths were kept still loads, and auto length is then the model's own
+    # a vocabulary written before lengths were kept still loads; it has no prior to give
     doc = json.loads((model / VOCABULARY_FILE).read_text())
     del doc["durations"]
     (model / VOCABULARY_FILE).write_text(json.dumps(doc))
-    assert load_pipeline(model).frames_for(None, "a person walks forward") is None
+    with pytest.raises(ValueError, match="keeps motion lengths"):
+        load_pipeline(model).frames_for("prior", "a person walks forward")
     doc["durations"] = [1.0]
     (model / VOCABULARY_FILE).write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="durations"):

@@ -48,7 +48,7 @@ def add_edit(sub) -> None:
     e.add_argument("--reweight", action="append", metavar="WORD=SCALE", help="scale a word's attention (-3..3)")
     e.add_argument("--mirror", choices=MIRROR_PARTS, default=None)
     e.add_argument("--self-inject", type=float, default=DEFAULT_SELF_INJECT, help="share of steps with source self-attention")
-    e.add_argument("--seconds", default=None, help="length in seconds, 'auto' (default) or 'model', as for generate")
+    e.add_argument("--seconds", default=None, help="length in seconds, 'auto' (default) or 'prior', as for generate")
     e.add_argument("--seed", type=int, default=0)
     add_sampling(e)
     e.add_argument("--model", default=None)

@@ -202,6 +202,9 @@ def add_eval_fidelity(sub) -> None:
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--classes", default=None, help="comma list of classes (default: all), e.g. walk,kick")
     p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--length", choices=("auto", "prior"), default="auto",
+                   help="auto (default): the model ends each motion itself; prior: the training data's length for "
+                        "the prompt (generate --seconds prior)")
     add_sampling(p)
     p.add_argument("--split", default="test")
     p.add_argument("--threads", type=int, default=0)
@@ -227,7 +230,7 @@ def cmd_eval_fidelity(a) -> int:
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device)
     bar, update = progress_bar("generating")
     results = evaluate_fidelity(pipe, a.data, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
-                                classes=classes, split=a.split, classifier=clf, progress=update)
+                                classes=classes, split=a.split, classifier=clf, progress=update, length=a.length)
     bar.close()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -198,9 +198,12 @@ def _shown(path: str) -> str:
 
 def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | None = None, cfg: float = 7.5,
                       sampler: str = "ddim", classes=None, split: str = "test", classifier=None,
-                      progress: Callable[[int, int], None] | None = None) -> dict:
+                      progress: Callable[[int, int], None] | None = None, length: str = "auto") -> dict:
     """Per-class checks of generated against real motion; with a `classifier` (salad.eval.classifiers), also
-    the share of generated motions it puts in the prompt's action (and style, for styled classes)."""
+    the share of generated motions it puts in the prompt's action (and style, for styled classes).
+    length: "auto" (the model's own) or "prior" (Pipeline.frames_for)."""
+    if length not in ("auto", "prior"):
+        raise ValueError(f"length must be 'auto' or 'prior', got {length!r}")
     if not isinstance(seeds, int) or seeds < 1:
         raise ValueError(f"seeds must be a positive integer, got {seeds!r}")
     steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler)     # the report names the steps used
@@ -223,7 +226,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | 
         raw, clean, samples, features = [], [], [], []
         for prompt in cls.prompts:
             for seed in range(seeds):
-                m = pipe.generate(prompt, seconds=None, seed=seed, steps=steps, cfg=cfg, sampler=sampler,
+                m = pipe.generate(prompt, seconds=length, seed=seed, steps=steps, cfg=cfg, sampler=sampler,
                                   foot_lock=False)
                 locked, _ = clean_motion(m.joints, m.features)
                 raw.append(measure(m.joints))
@@ -249,7 +252,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | 
         rows.append(row)
     return {"rows": rows, "rules": RULES, "settings": {
         "seeds": seeds, "steps": steps, "cfg": cfg, "sampler": sampler, "split": split, "model": _shown(pipe.source),
-        "length": "auto", "seconds": round(time.perf_counter() - started, 1)},
+        "length": length, "seconds": round(time.perf_counter() - started, 1)},
         "summary": summary(rows, classifier)}
 
 
@@ -289,7 +292,8 @@ def _classified_cell(c: dict) -> str:
 def report_markdown(results: dict) -> str:
     s = results["settings"]
     lines = ["# Fidelity per class", "",
-             f"Model `{s['model']}`; held-out paraphrases × {s['seeds']} seeds, auto length, {s['sampler']} "
+             f"Model `{s['model']}`; held-out paraphrases × {s['seeds']} seeds, "
+             f"{'the length prior' if s.get('length') == 'prior' else 'auto length'}, {s['sampler']} "
              f"{s['steps']} steps, CFG {s['cfg']}; reference: real clips of the class in the prompt's style "
              f"({UNSTYLED} where it names none) from the {s['split']} split, widened to all splits, then all "
              f"styles, where fewer than {MIN_REFERENCE} are found (in brackets). Cells: generated median / real median; "
