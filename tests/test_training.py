@@ -551,3 +551,30 @@ def test_the_cli_bundles_a_config_and_trains_from_the_bundle(tiny_model, tiny_da
                  "--data", str(tmp_path / "nowhere"), "--out-dir", str(tmp_path / "run")]) == 0
     doc = json.loads((tmp_path / "run" / "model" / "config.json").read_text())
     assert doc["meta"]["train_config"]["data"]["bundle"] == str(tmp_path / "b")
+
+
+def test_min_snr_weighting_rescales_each_timesteps_loss_and_caps_it(tiny_model, tiny_dataset, tmp_path):
+    from salad.config import ConfigError
+    from salad.training.denoiser_task import DenoiserTask
+
+    cfg = _bundle_config(tiny_dataset, tiny_model, tmp_path / "a")
+    cfg.min_snr_gamma = 5.0
+    task = DenoiserTask(cfg, show_progress=False)
+    model = task.model.eval()                                   # no dropout: the two losses see one forward
+    t = torch.tensor([0, 100, 400, 999])
+    a = task.schedule.alphas_cumprod[t].float()
+    snr = a / (1 - a)
+    torch.testing.assert_close(model.snr_weights(t), torch.minimum(snr, torch.tensor(5.0)) / (snr + 1))
+    assert model.snr_weights(t)[0] < 0.05 and model.snr_weights(t)[-1] < 0.01    # capped clean end, noisy end
+    batch = task.batch(np.random.default_rng(0))
+    for step in (0, 400):
+        batch["timesteps"] = torch.full_like(batch["timesteps"], step)
+        with torch.no_grad():
+            weighted = model(batch)[0]
+            model.min_snr_gamma = 0.0
+            plain = model(batch)[0]
+            model.min_snr_gamma = 5.0
+        torch.testing.assert_close(weighted, plain * model.snr_weights(torch.tensor([step]))[0])
+    cfg.min_snr_gamma = -1.0
+    with pytest.raises(ConfigError, match="min_snr_gamma"):
+        DenoiserTask(cfg, show_progress=False)

@@ -74,6 +74,19 @@ def read_labels(root: str | Path) -> dict[str, MotionLabels]:
     return out
 
 
+def content_of(root: str | Path, names: list[str]) -> list[str]:
+    """The content class of each motion `names` (a sub-clip "id@start" takes its motion's), from root's
+    labels.json; FileNotFoundError without one, ValueError where a motion has no labels."""
+    labels = read_labels(root)
+    content = []
+    for name in names:
+        lab = labels.get(name.split("@")[0])
+        if lab is None:
+            raise ValueError(f"{Path(root) / 'labels.json'}: no labels for motion {name!r}")
+        content.append(lab.content)
+    return content
+
+
 def pick_test_clips(labels: dict, n: int, content: str | None = None, style: str | None = None) -> list[str]:
     """n test clips spread evenly over the sorted ids that match content/style."""
     names = sorted(k for k, v in labels.items() if v.split == "test" and (content is None or v.content == content)

@@ -75,6 +75,9 @@ class DenoiserTrainConfig:
     # the latents are mu + posterior_noise * sigma * eps of the VAE's posterior; 0 trains on the means, whose
     # motion decodes without the frame-to-frame tremor that the posterior's noise becomes in the decoder
     posterior_noise: float = 1.0
+    # Min-SNR-gamma loss weighting (Hang et al. 2023): each timestep's loss rescaled to the clean sample's and
+    # capped at gamma; 0 = off (every timestep alike, as the shipped denoiser trained)
+    min_snr_gamma: float = 0.0
 
 
 @dataclass

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from ..config import ConfigError, to_dict
 from ..data.dataset import MotionDataset
 from ..diffusion.schedule import NoiseSchedule
-from ..data.labels import read_labels
+from ..data.labels import content_of
 from ..models.denoiser import Denoiser
 from ..checkpoint import CheckpointError, load_state_strict
 from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum, vae_latent_checksums
@@ -37,10 +37,21 @@ from .latent_bundle import LatentBundle
 
 
 class DenoiserTraining(nn.Module):
-    def __init__(self, denoiser: Denoiser, schedule: NoiseSchedule):
+    def __init__(self, denoiser: Denoiser, schedule: NoiseSchedule, min_snr_gamma: float = 0.0):
         super().__init__()
         self.denoiser = denoiser
         self.schedule = schedule
+        self.min_snr_gamma = min_snr_gamma
+
+    def snr_weights(self, t: torch.Tensor) -> torch.Tensor:
+        """Min-SNR-gamma weights (Hang et al. 2023) of timesteps t: the loss of each prediction type
+        rescaled to that of the clean sample, capped at gamma, so the nearly clean timesteps, whose
+        targets are easy, stop dominating the gradient."""
+        a = self.schedule.alphas_cumprod.to(t.device)[t.long()]
+        snr = (a / (1.0 - a)).float()
+        capped = snr.clamp(max=self.min_snr_gamma)
+        kind = self.schedule.config.prediction_type
+        return capped / (snr + 1.0) if kind == "v_prediction" else capped / snr if kind == "epsilon" else capped
 
     def forward(self, batch: dict):
         """(loss, logs, the clean-latent estimate)."""
@@ -52,6 +63,8 @@ class DenoiserTraining(nn.Module):
                              pooled_text=batch["pooled"], auto_length=batch["auto"])
         target = self.schedule.target(z0, noise, t)
         err = F.mse_loss(pred.float(), target.float(), reduction="none").mean(dim=(2, 3))  # (B, T)
+        if self.min_snr_gamma > 0:
+            err = err * self.snr_weights(t)[:, None]
         if batch["frame_mask"] is not None:
             w = batch["frame_mask"].float()
             loss = (err * w).sum() / w.sum().clamp_min(1.0)
@@ -64,18 +77,10 @@ class DenoiserTraining(nn.Module):
 def dataset_content(dataset: MotionDataset) -> list[str]:
     """Each training motion's content class, from the dataset's labels.json."""
     try:
-        labels = read_labels(dataset.root)
+        return content_of(dataset.root, [it.name for it in dataset.items])
     except (FileNotFoundError, ValueError) as e:
-        raise ConfigError(f"data.balance draws by content class, which needs the dataset's labels ({e}); "
-                          "set data.balance = 1 to draw motions as recorded") from None
-    content = []
-    for it in dataset.items:
-        lab = labels.get(it.name.split("@")[0])
-        if lab is None:
-            raise ConfigError(f"{dataset.root}/labels.json: no labels for motion {it.name!r} (data.balance "
-                              "needs every training motion labelled)")
-        content.append(lab.content)
-    return content
+        raise ConfigError(f"data.balance draws by content class, which needs every training motion labelled "
+                          f"({e}); set data.balance = 1 to draw motions as recorded") from None
 
 
 def class_weights(content: list[str] | None, balance: float) -> np.ndarray | None:
@@ -132,7 +137,9 @@ class DenoiserTask:
         self._weights = class_weights(self.content, d.balance)
         self.schedule = NoiseSchedule(cfg.diffusion)
         torch.manual_seed(cfg.run.seed)
-        self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule)
+        if not cfg.min_snr_gamma >= 0:
+            raise ConfigError(f"min_snr_gamma must be >= 0 (0 = off), got {cfg.min_snr_gamma}")
+        self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule, cfg.min_snr_gamma)
         if cfg.contact_loss < 0:
             raise ConfigError(f"contact_loss must be >= 0, got {cfg.contact_loss}")
         if not cfg.posterior_noise >= 0:

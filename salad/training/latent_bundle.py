@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from ..config import ConfigError
+from ..data.labels import content_of
 from ..models.text_bank import TextBank
 
 KIND = "latent-bundle"
@@ -35,13 +35,11 @@ def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progr
         raise ValueError(f"parts must hold more than {HEADER_BYTES} bytes, got {part_bytes}")
     if windows < 1:
         raise ValueError(f"windows must be >= 1, got {windows}")
-    from .denoiser_task import dataset_content
-
     items = task.dataset.items
     canvas = task.canvas
     try:
-        content = dataset_content(task.dataset)
-    except ConfigError:           # no labels.json: a bundle that trains with data.balance = 1 only
+        content = content_of(task.dataset.root, [it.name for it in items])
+    except (FileNotFoundError, ValueError):      # unlabelled data: a bundle that trains with data.balance = 1 only
         content = None
 
     def encode(crops: list[np.ndarray]) -> torch.Tensor:
