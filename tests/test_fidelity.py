@@ -57,12 +57,17 @@ def test_rules_pass_and_fail_where_stated():
 
 
 @pytest.mark.slow
-def test_a_fidelity_run_with_the_embedded_model(tmp_path):
+def _walks_labelled(tmp_path):
+    """The tiny dataset with every motion labelled a normal walk."""
     root = write_tiny_dataset(tmp_path / "data")
-    names = [l for f in ("train", "val", "test") for l in (root / f"{f}.txt").read_text().split()]
     split = {n: f for f in ("train", "val", "test") for n in (root / f"{f}.txt").read_text().split()}
     (root / "labels.json").write_text(json.dumps(
-        {n: {"content": "walk", "style": "normal", "split": split[n]} for n in names}))
+        {n: {"content": "walk", "style": "normal", "split": s} for n, s in split.items()}))
+    return root
+
+
+def test_a_fidelity_run_with_the_embedded_model(tmp_path):
+    root = _walks_labelled(tmp_path)
     clf = load_classifier(EMBEDDED_CLASSIFIER)
     res = evaluate_fidelity(load_pipeline(), root, seeds=1, steps=4, classes=["walk", "kick"], classifier=clf)
     (row,) = res["rows"]                                        # kick has no clips in this dataset
@@ -117,11 +122,7 @@ def test_reference_clips_follow_the_prompts_style_and_widen_only_when_too_few(tm
 
 
 def test_a_fidelity_run_with_the_length_prior_generates_at_the_priors_length(tmp_path):
-    root = write_tiny_dataset(tmp_path / "data")
-    names = [l for f in ("train", "val", "test") for l in (root / f"{f}.txt").read_text().split()]
-    split = {n: f for f in ("train", "val", "test") for n in (root / f"{f}.txt").read_text().split()}
-    (root / "labels.json").write_text(json.dumps(
-        {n: {"content": "walk", "style": "normal", "split": split[n]} for n in names}))
+    root = _walks_labelled(tmp_path)
     pipe = load_pipeline()
     with pytest.raises(ValueError, match="'auto' or 'prior'"):
         evaluate_fidelity(pipe, root, length="longest")
