@@ -3,11 +3,12 @@ posterior means and the captions' token features, split into parts of bounded si
 
 A GPU lent for minutes is reached by transfers of at most 64 MiB. The Bandai build's
 features are 0.4 GB; its training motions' latents are ~58 MB in fp16 and their captions'
-token features ~120 MB in bf16, so the bundle goes over in parts, each with the checksum that
-load_checkpoint verifies. Latents are stored per motion only as far as they differ from
-those of an empty canvas (the encoder sees ~3 latent frames past a motion's end; beyond that
-every motion's padding encodes alike), and a motion longer than the canvas as a few windows at
-evenly spaced offsets instead of a fresh random window per draw.
+token features ~140 MB (bf16 tokens, fp32 sentence features), so the bundle goes over in
+parts, each with the checksum that load_checkpoint verifies. Latents are stored per motion
+only as far as they differ from those of an empty canvas (the encoder sees ~3 latent frames
+past a motion's end; beyond that every motion's padding encodes alike), and a motion longer
+than the canvas as a few windows at evenly spaced offsets instead of a fresh random window
+per draw.
 """
 from __future__ import annotations
 
