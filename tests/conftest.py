@@ -82,6 +82,14 @@ def synthetic_walk(frames: int = 60, seed: int = 0, speed: float = 1.2, turn: fl
     return j.astype(np.float32)
 
 
+def mp4_frames(path) -> np.ndarray:
+    """Every frame of an MP4 (T, H, W, 3)."""
+    import imageio.v2 as imageio
+
+    with imageio.get_reader(path, format="FFMPEG") as reader:
+        return np.stack([frame for frame in reader.iter_data()])
+
+
 def write_tiny_dataset(root: Path, n: int = 12, frames: int = 72) -> Path:
     """A HumanML3D-layout directory of synthetic walks (straight, turning, mirrored)
     with captions, splits and statistics."""

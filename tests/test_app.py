@@ -27,7 +27,7 @@ from app.studio import Studio, file_stem, word_tint
 from app.ui.handlers import word_choices
 from app.validation import GenerateRequest, parse_attention, parse_generate
 from app.workspace import Workspace
-from conftest import free_port, serve_studio, synthetic_walk
+from conftest import free_port, mp4_frames, serve_studio, synthetic_walk
 
 REPO = Path(__file__).resolve().parents[1]
 STEPS = 6
@@ -51,13 +51,6 @@ def plotly_array(value) -> np.ndarray:
         arr = np.frombuffer(base64.b64decode(value["bdata"]), dtype=value["dtype"])
         return arr.reshape([int(n) for n in str(value.get("shape", len(arr))).split(",")])
     return np.asarray(value, dtype=float)
-
-
-def mp4_frames(path) -> np.ndarray:
-    import imageio.v2 as imageio
-
-    with imageio.get_reader(path, format="FFMPEG") as reader:
-        return np.stack([frame for frame in reader.iter_data()])
 
 
 # ---------------------------------------------------------------- the API

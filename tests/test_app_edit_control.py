@@ -20,7 +20,7 @@ from app.settings import MAX_UPLOAD_BYTES, Settings
 from app.studio import Studio
 from app.validation import ControlRequest, EditRequest, parse_control, parse_edit
 from app.workspace import Workspace
-from conftest import serve_studio, synthetic_walk
+from conftest import mp4_frames, serve_studio, synthetic_walk
 
 STEPS = 4
 SOURCE = "a person waves their right hand happily"
@@ -53,13 +53,6 @@ def control(client, prompt="a person walks forward", task="path", preset="circle
             upload=None, example="", keyframes="first, last", strength=3.0, seed=0, steps=STEPS, cfg=7.5):
     return client.predict(prompt, task, preset, seconds, speed, upload, example, keyframes, strength, seed, steps, cfg,
                           api_name="/control")
-
-
-def mp4_frames(path) -> np.ndarray:
-    import imageio.v2 as imageio
-
-    with imageio.get_reader(path, format="FFMPEG") as reader:
-        return np.stack([frame for frame in reader.iter_data()])
 
 
 def plot(value) -> dict:
