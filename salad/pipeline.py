@@ -87,9 +87,10 @@ class Pipeline:
         """Requested duration -> frame count (a multiple of 4), or None for auto length (the model ends the
         motion itself: its activation channel, MoLA). seconds="prior": the length the training data gives
         motions like `prompt` (PromptCheck.length_prior), for models that ship a vocabulary with lengths."""
-        if seconds is None or (isinstance(seconds, str) and seconds.strip().lower() == "auto"):
+        keyword = _length_keyword(seconds)
+        if keyword == "auto":
             return None
-        if isinstance(seconds, str) and seconds.strip().lower() == "prior":
+        if keyword == "prior":
             prior = self.prompt_check.length_prior(prompt) if self.prompt_check and prompt else None
             if prior is None:
                 raise ValueError("seconds='prior' needs a prompt and a model whose vocabulary keeps motion lengths "
@@ -107,7 +108,7 @@ class Pipeline:
     @staticmethod
     def length_source(seconds) -> str:
         """How frames_for(seconds) chose a length that it did choose: "requested" or "prior"."""
-        return "prior" if isinstance(seconds, str) and seconds.strip().lower() == "prior" else "requested"
+        return "prior" if _length_keyword(seconds) == "prior" else "requested"
 
     def check_sampling(self, steps, cfg, sampler, batch=1) -> tuple[int, float, str, int]:
         """Checked (steps, cfg, sampler, batch); steps=None is the sampler's default
@@ -421,6 +422,14 @@ class Pipeline:
         parameters."""
         return edit_real(self, motion, source_prompt, target_prompt, mode, **params)
 
+
+
+def _length_keyword(seconds) -> str | None:
+    """"auto" (None too) or "prior" where `seconds` names a way to choose the length, else None."""
+    if seconds is None:
+        return "auto"
+    word = seconds.strip().lower() if isinstance(seconds, str) else None
+    return word if word in ("auto", "prior") else None
 
 
 def end_of_motion(activation: np.ndarray, threshold: float = ACTIVATION_THRESHOLD) -> int:

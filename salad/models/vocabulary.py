@@ -191,10 +191,13 @@ class PromptCheck:
             self._features = _encode([c for _, c in self.vocab.examples], self.encoder)
         return self._features
 
+    def _query(self, prompt: str) -> torch.Tensor:
+        # compared on the CPU, where the stored vocabulary features are
+        return torch.nn.functional.normalize(self.encoder.encode([prompt]).pooled.float().cpu(), dim=-1)[0]
+
     def nearest(self, prompt: str, k: int = 3) -> list[tuple[str, float]]:
         """The `k` trained actions nearest to `prompt`: (how to name it, cosine similarity), best first."""
-        # compared on the CPU, where the stored vocabulary features are
-        q = torch.nn.functional.normalize(self.encoder.encode([prompt]).pooled.float().cpu(), dim=-1)[0]
+        q = self._query(prompt)
         sims = self.features @ q
         best: dict[str, float] = {}
         for (action, _), s in zip(self.vocab.examples, sims.tolist()):
@@ -207,7 +210,7 @@ class PromptCheck:
         the `k` example captions nearest to it (None when the vocabulary keeps no lengths)."""
         if not self.vocab.durations:
             return None
-        q = torch.nn.functional.normalize(self.encoder.encode([prompt]).pooled.float().cpu(), dim=-1)[0]
+        q = self._query(prompt)
         nearest = torch.topk(self.features @ q, min(k, len(self.vocab.durations))).indices.tolist()
         return float(np.median([self.vocab.durations[i] for i in nearest]))
 

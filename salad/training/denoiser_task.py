@@ -177,6 +177,11 @@ class DenoiserTask:
             act[b, :len(c)] = 1.0
         return feats, act
 
+    @torch.no_grad()
+    def encode(self, crops: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The VAE posterior (mean, log-variance) of raw feature crops, each on the canvas followed by padding."""
+        return self.vae.encode(*self._canvas([self.normalizer.normalize(c) for c in crops]))
+
     def _crop(self, feats: np.ndarray, rng: np.random.Generator, max_len: int) -> np.ndarray:
         if len(feats) > max_len:
             s = int(rng.integers(0, len(feats) - max_len + 1))
@@ -240,9 +245,7 @@ class DenoiserTask:
         posterior = {b: self._posteriors[int(i)] for b, i in enumerate(idx) if int(i) in self._posteriors}
         todo = [b for b in range(len(idx)) if b not in posterior]
         if todo:
-            with torch.no_grad():
-                mu, logvar = self.vae.encode(
-                    *self._canvas([self.normalizer.normalize(crops[b]) for b in todo]))
+            mu, logvar = self.encode([crops[b] for b in todo])
             for k, b in enumerate(todo):
                 posterior[b] = (mu[k].clone(), logvar[k].clone())
                 if fits[b]:

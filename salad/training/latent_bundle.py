@@ -43,16 +43,12 @@ def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progr
     except (FileNotFoundError, ValueError):      # unlabelled data: a bundle that trains with data.balance = 1 only
         content = None
 
-    def encode(crops: list[np.ndarray]) -> torch.Tensor:
-        mu, _ = task.vae.encode(*task._canvas([task.normalizer.normalize(c) for c in crops]))
-        return mu
-
-    empty = encode([np.zeros((0, task.dataset.dim), np.float32)])[0]
+    empty = task.encode([np.zeros((0, task.dataset.dim), np.float32)])[0][0]
     tensors: dict[str, torch.Tensor] = {"empty": empty}
     fits = [i for i, it in enumerate(items) if len(it.features) <= canvas]
     for s in tqdm(range(0, len(fits), 64), desc="latents", disable=not progress):
         ids = fits[s:s + 64]
-        mu = encode([items[i].features[: len(items[i].features) // 4 * 4] for i in ids])
+        mu, _ = task.encode([items[i].features[: len(items[i].features) // 4 * 4] for i in ids])
         for k, i in enumerate(ids):
             differs = torch.nonzero((mu[k] - empty).abs().flatten(1).amax(1) > 1e-6).flatten()
             keep = int(differs.max()) + 1 if len(differs) else 0
@@ -60,7 +56,7 @@ def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progr
     for i, it in enumerate(items):
         if len(it.features) > canvas:
             starts = np.round(np.linspace(0, len(it.features) - canvas, windows)).astype(int)
-            tensors[f"windows.{i}"] = encode([it.features[s:s + canvas] for s in starts]).to(torch.float16)
+            tensors[f"windows.{i}"] = task.encode([it.features[s:s + canvas] for s in starts])[0].to(torch.float16)
     flat, lengths, pooled = task.text.tensors()
     rows = max(1, min(TEXT_CHUNK_ROWS, (part_bytes - HEADER_BYTES) // (flat.shape[1] * flat.element_size())))
     for j, s in enumerate(range(0, len(flat), rows)):
