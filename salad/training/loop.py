@@ -151,8 +151,8 @@ class Trainer:
         if self.ema is not None:
             with torch.no_grad():
                 d = min(self.ema_decay, (1 + self.step_count) / (10 + self.step_count))
-                for pe, pm in zip(self.ema.parameters(), self.model.parameters()):
-                    pe.lerp_(pm.detach(), 1 - d)
+                # one fused call: a Python loop over the parameters dominated the step on a GPU
+                torch._foreach_lerp_(list(self.ema.parameters()), list(self.model.parameters()), 1 - d)
         self.step_count += 1
         logs["lr"] = self.optimizer.param_groups[0]["lr"]
         return logs
