@@ -356,6 +356,28 @@ def test_class_balance_draws_rare_actions_as_configured(tiny_model, tiny_dataset
     assert abs(share - expected) < 0.05, (share, expected)
 
 
+@pytest.mark.parametrize("balance", [1.0, 0.0])
+def test_vae_windows_follow_class_balance_and_length(tiny_dataset, tmp_path, balance):
+    root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)         # 2 kicks, 6 walks in train
+    cfg = vae_config(root, tmp_path / "run")
+    cfg.data.balance = balance
+    task = VAETask(cfg)
+    lengths = np.array([len(it.features) for it in task.dataset.items], dtype=np.float64)
+    kick = np.array([it.captions == ["a person kicks"] for it in task.dataset.items])
+    assert kick.sum() == 2 and len(kick) == 8
+    share = task.sampler.weights[kick].sum()
+    if balance == 1.0:      # as recorded: every frame alike
+        expected = lengths[kick].sum() / lengths.sum()
+    else:                   # each class alike; within a class, by length
+        expected = 0.5
+        assert task.sampler.weights[~kick].sum() == pytest.approx(0.5)
+        assert np.allclose(task.sampler.weights[kick] / share, lengths[kick] / lengths[kick].sum())
+    assert share == pytest.approx(expected)
+    rng = np.random.default_rng(0)
+    drawn = rng.choice(len(kick), size=4000, p=task.sampler.weights)
+    assert abs(kick[drawn].mean() - expected) < 0.03
+
+
 def test_class_balance_needs_labels_and_a_valid_exponent(tiny_model, tiny_dataset, tmp_path):
     from salad.config import ConfigError
     from salad.training.denoiser_task import DenoiserTask

@@ -162,17 +162,22 @@ def collate_motions(items: list[dict], multiple: int = 4, pad_to: int | None = N
 
 
 class WindowSampler:
-    """Fixed-length training windows for the VAE, drawn uniformly over all frames.
+    """Fixed-length training windows for the VAE, drawn uniformly over all frames, or motion by
+    motion in proportion to item_weights.
 
     A window may run past a motion's end; the overhang is zero (the mean pose in
     normalised space) with activation 0, which is how the VAE learns to mark the end
     of a motion (MoLA). `overhang` bounds how much of a window may be padding.
     """
 
-    def __init__(self, dataset: MotionDataset, window: int = 64, overhang: float = 0.5):
+    def __init__(self, dataset: MotionDataset, window: int = 64, overhang: float = 0.5,
+                 item_weights: np.ndarray | None = None):
+        """item_weights: how often to draw each motion (default: in proportion to its length)."""
         self.ds, self.window, self.overhang = dataset, window, overhang
-        lengths = np.array([len(it.features) for it in dataset.items])
-        self.weights = lengths / lengths.sum()
+        w = np.array([len(it.features) for it in dataset.items], dtype=np.float64)
+        if item_weights is not None:
+            w = np.asarray(item_weights, dtype=np.float64)
+        self.weights = w / w.sum()
 
     def batch(self, size: int, rng: np.random.Generator) -> dict:
         W = self.window

@@ -25,9 +25,9 @@ import torch.nn.functional as F
 from ..config import ConfigError, to_dict
 from ..data.dataset import MotionDataset
 from ..diffusion.schedule import NoiseSchedule
-from ..data.labels import content_of
 from ..models.denoiser import Denoiser
 from ..checkpoint import CheckpointError, load_state_strict
+from .balance import class_weights, dataset_content
 from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum, vae_latent_checksums
 from ..models.text import load_text_encoder, parse_text_encoder_spec
 from ..models.text_bank import TextBank
@@ -72,28 +72,6 @@ class DenoiserTraining(nn.Module):
             loss = err.mean()
         x0, _ = self.schedule.to_x0_eps(zt.float(), pred.float(), t)
         return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}, x0
-
-
-def dataset_content(dataset: MotionDataset) -> list[str]:
-    """Each training motion's content class, from the dataset's labels.json."""
-    try:
-        return content_of(dataset.root, [it.name for it in dataset.items])
-    except (FileNotFoundError, ValueError) as e:
-        raise ConfigError(f"data.balance draws by content class, which needs every training motion labelled "
-                          f"({e}); set data.balance = 1 to draw motions as recorded") from None
-
-
-def class_weights(content: list[str] | None, balance: float) -> np.ndarray | None:
-    """Probability of drawing each item so that a content class with n clips is drawn in
-    proportion to n**balance (None: uniform, balance = 1)."""
-    if balance == 1.0:
-        return None
-    if content is None:
-        raise ConfigError(f"data.balance = {balance} draws by content class, and this data has no content "
-                          "labels; set data.balance = 1 to draw motions as recorded")
-    names, cls, counts = np.unique(content, return_inverse=True, return_counts=True)
-    w = counts[cls].astype(np.float64) ** (balance - 1.0)
-    return w / w.sum()
 
 
 class DenoiserTask:

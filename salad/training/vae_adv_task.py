@@ -27,6 +27,7 @@ from ..models.discriminator import SANDiscriminator, san_discriminator_loss, san
 from ..models.io import load_vae, save_vae, vae_latent_sources
 from ..models.vae import MotionVAE
 from ..motion.representation import Normalizer
+from .balance import window_weights
 from .configs import VAESANTrainConfig
 from .foot_loss import velocity_errors
 
@@ -109,7 +110,8 @@ class VAESANTask:
         if cfg.discriminator.feature_dim != self.normalizer.dim:
             raise ValueError(f"discriminator.feature_dim is {cfg.discriminator.feature_dim}, "
                              f"the data has {self.normalizer.dim} dims")
-        self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang)
+        self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang,
+                                     window_weights(self.dataset, cfg.data.balance))
         torch.manual_seed(cfg.run.seed)
         self.model = AdversarialVAETraining(vae, SANDiscriminator(cfg.discriminator), cfg.lambda_adv,
                                             cfg.lambda_foot, self.normalizer, cfg.lambda_root, cfg.lambda_acc)

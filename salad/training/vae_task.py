@@ -13,6 +13,7 @@ from ..data.dataset import MotionDataset, WindowSampler
 from ..models.vae import MotionVAE
 from ..checkpoint import load_state_strict
 from ..models.io import load_vae, save_vae
+from .balance import window_weights
 from .configs import VAETrainConfig
 
 
@@ -37,7 +38,8 @@ class VAETask:
         self.cfg = cfg
         self.dataset = dataset or MotionDataset(cfg.data.root, "train", min_frames=cfg.data.min_frames,
                                                 max_frames=10 ** 9, require_captions=False)
-        self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang)
+        self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang,
+                                     window_weights(self.dataset, cfg.data.balance))
         torch.manual_seed(cfg.run.seed)
         self.model = VAETraining(MotionVAE(cfg.model))
 
