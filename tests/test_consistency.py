@@ -343,6 +343,48 @@ def test_cli_samples_with_the_student(tiny_student, tiny_dataset, tmp_path, caps
     assert "distilled for cfg" in capsys.readouterr().err
 
 
+def test_distillation_continues_an_exported_student_of_the_same_teacher(tiny_student, tiny_model, tiny_dataset,
+                                                                          tmp_path, capsys):
+    from salad.cli import main
+    from salad.models.io import load_denoiser
+
+    student, before = load_denoiser(tiny_student / "consistency")
+    start = before["meta"]["step"]
+    run = tmp_path / "more"
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=start)
+    # zero more steps to take is a clear error, not a silent no-op
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run),
+                 "--continue-from", str(tiny_student / "consistency")]) == 2
+    assert "--max-steps above" in capsys.readouterr().err
+    # a long re-warm-up keeps these two steps' updates tiny, so the export must still be the student
+    consistency_toml(cfg, tiny_dataset, tiny_model, steps=start + 2)
+    cfg.write_text(cfg.read_text().replace("warmup_steps = 1\n", "warmup_steps = 10000\n"))
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run),
+                 "--continue-from", str(tiny_student / "consistency")]) == 0
+    after, doc = load_denoiser(run / "model")
+    assert doc["meta"]["step"] == start + 2
+    rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [start + 1, start + 2]
+    # it went on from the student, not from the teacher (whose copy starts with the guidance embedding at zero)
+    old, new = student.guidance_mlp[-1].weight, after.guidance_mlp[-1].weight
+    assert old.abs().sum() > 0 and torch.allclose(new, old, atol=1e-4)
+    for (name, a), b in zip(student.state_dict().items(), after.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-4), name
+    # a student of another teacher is refused
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "vae").symlink_to((tiny_model / "vae").resolve())
+    cfg_d = denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=1)
+    assert main(["train", "denoiser", "--config", str(cfg_d), "--out-dir", str(tmp_path / "den"),
+                 "--vae", str(tiny_model / "vae")]) == 0
+    (other / "denoiser").symlink_to(tmp_path / "den" / "model")
+    capsys.readouterr()
+    consistency_toml(cfg, tiny_dataset, other, steps=start + 2)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r2"),
+                 "--continue-from", str(tiny_student / "consistency")]) == 2
+    assert "distilled from another teacher" in capsys.readouterr().err
+
+
 def test_a_run_does_not_resume_onto_another_teacher(tiny_model, tiny_dataset, tmp_path, capsys):
     from salad.cli import main
 

@@ -6,8 +6,8 @@ def cmd_train(a) -> int:
     from ..config import apply_overrides, load_toml
     from ..training.configs import ConsistencyTrainConfig, DenoiserTrainConfig, VAETrainConfig
     from ..training.loop import Trainer
-    if a.continue_from and a.what not in ("vae", "denoiser"):
-        raise ValueError(f"--continue-from applies to the vae and the denoiser, not to {a.what}")
+    if a.continue_from and a.what not in ("vae", "denoiser", "consistency"):
+        raise ValueError(f"--continue-from applies to the vae, the denoiser and consistency, not to {a.what}")
     if a.init_from and a.what not in ("vae", "vae-san", "denoiser"):
         raise ValueError(f"--init-from applies to the vae, vae-san and the denoiser, not to {a.what}")
     if a.teacher and a.what != "consistency":
@@ -69,5 +69,6 @@ def add_parser(sub) -> None:
                        help="fine-tune: start a new run (step 0) from an exported model's weights")
     start.add_argument("--continue-from", metavar="MODEL_DIR",
                        help="train an exported model further: its weights and step count, so the LR schedule and "
-                            "max_steps count on from its step; the fresh optimiser warms up again over warmup_steps")
+                            "max_steps count on from its step; the fresh optimiser warms up again over warmup_steps. "
+                            "consistency: an exported student of the same teacher")
     t.set_defaults(func=cmd_train)

@@ -25,7 +25,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..checkpoint import CheckpointError
+from ..checkpoint import CheckpointError, load_state_strict
 from ..config import from_dict, to_dict
 from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_timesteps
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
@@ -225,6 +225,21 @@ class ConsistencyTask:
 
     def loss(self, model: nn.Module, batch: dict):
         return model(batch)
+
+    def load_weights(self, model: nn.Module, path: Path) -> dict:
+        """An exported student of this same teacher, e.g. one distilled on another machine, as
+        both the student and its target network."""
+        student, doc = load_denoiser(path)
+        info = doc.get("meta", {}).get("consistency")
+        if not student.config.guidance_embedding or not isinstance(info, dict):
+            raise CheckpointError(f"{path}: not a consistency-distilled student")
+        mine = self.teacher_doc["files"]["denoiser"]["sha256"]
+        if info.get("teacher", {}).get("sha256") != mine:
+            raise CheckpointError(f"{path} was distilled from another teacher than {self.cfg.teacher}'s denoiser; "
+                                  "continue it with its own teacher, or distil afresh")
+        load_state_strict(model.student, student.state_dict(), str(path))
+        model.target.load_state_dict(model.student.state_dict())
+        return doc.get("meta", {})
 
     def config_dict(self) -> dict:
         # the teacher's weights, not only its path: a run resumed after the teacher was replaced
