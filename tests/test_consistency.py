@@ -343,6 +343,20 @@ def test_cli_samples_with_the_student(tiny_student, tiny_dataset, tmp_path, caps
     assert "distilled for cfg" in capsys.readouterr().err
 
 
+def _model_dir_and_another_denoiser(tiny_model, tiny_dataset, tmp_path):
+    """A model directory with the tiny model's VAE and no denoiser yet, and a second denoiser on that
+    VAE (trained for one step), for tests that swap a teacher."""
+    from salad.cli import main
+
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "vae").symlink_to((tiny_model / "vae").resolve())
+    cfg = denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=1)
+    assert main(["train", "denoiser", "--config", str(cfg), "--out-dir", str(tmp_path / "den"),
+                 "--vae", str(tiny_model / "vae")]) == 0
+    return other, tmp_path / "den" / "model"
+
+
 def test_distillation_continues_an_exported_student_of_the_same_teacher(tiny_student, tiny_model, tiny_dataset,
                                                                           tmp_path, capsys):
     from salad.cli import main
@@ -371,13 +385,8 @@ def test_distillation_continues_an_exported_student_of_the_same_teacher(tiny_stu
     for (name, a), b in zip(student.state_dict().items(), after.state_dict().values()):
         assert torch.allclose(a, b, atol=1e-4), name
     # a student of another teacher is refused
-    other = tmp_path / "other"
-    other.mkdir()
-    (other / "vae").symlink_to((tiny_model / "vae").resolve())
-    cfg_d = denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=1)
-    assert main(["train", "denoiser", "--config", str(cfg_d), "--out-dir", str(tmp_path / "den"),
-                 "--vae", str(tiny_model / "vae")]) == 0
-    (other / "denoiser").symlink_to(tmp_path / "den" / "model")
+    other, newer = _model_dir_and_another_denoiser(tiny_model, tiny_dataset, tmp_path)
+    (other / "denoiser").symlink_to(newer)
     capsys.readouterr()
     consistency_toml(cfg, tiny_dataset, other, steps=start + 2)
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r2"),
@@ -388,19 +397,14 @@ def test_distillation_continues_an_exported_student_of_the_same_teacher(tiny_stu
 def test_a_run_does_not_resume_onto_another_teacher(tiny_model, tiny_dataset, tmp_path, capsys):
     from salad.cli import main
 
-    other = tmp_path / "other"
-    other.mkdir()
-    (other / "vae").symlink_to((tiny_model / "vae").resolve())
-    cfg_d = denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=1)
-    assert main(["train", "denoiser", "--config", str(cfg_d), "--out-dir", str(tmp_path / "den"),
-                 "--vae", str(tiny_model / "vae")]) == 0
+    other, newer = _model_dir_and_another_denoiser(tiny_model, tiny_dataset, tmp_path)
     # the teacher directory keeps its path while its denoiser is replaced by a newer one
     (other / "denoiser").symlink_to((tiny_model / "denoiser").resolve())
     run = tmp_path / "run"
     cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, other, steps=2)
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
     (other / "denoiser").unlink()
-    (other / "denoiser").symlink_to(tmp_path / "den" / "model")
+    (other / "denoiser").symlink_to(newer)
     consistency_toml(cfg, tiny_dataset, other, steps=3)
     capsys.readouterr()
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 2
