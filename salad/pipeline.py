@@ -26,7 +26,7 @@ from .editing.spec import DEFAULT_SELF_INJECT, EditResult, EditSpec
 from .editing.store import AttentionStore
 from .config import from_dict
 from .models.denoiser import Denoiser
-from .models.io import load_denoiser, load_vae, vae_latent_checksums
+from .models.io import load_consistency_student, load_denoiser, load_vae, vae_latent_checksums
 from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
 from .models.vocabulary import PromptCheck
@@ -477,11 +477,8 @@ def load_student(root: Path, teacher_config: dict, vae_checksums: set[str]) -> t
     path = root / "consistency"
     if not path.is_dir():
         return None, {}
-    student, doc = load_denoiser(path)
-    cfg, meta = doc["config"], doc.get("meta", {})
-    info = meta.get("consistency")
-    if not student.config.guidance_embedding or not isinstance(info, dict):
-        raise CheckpointError(f"{path}: not a consistency-distilled student (train one with `salad train consistency`)")
+    student, doc, info = load_consistency_student(path)
+    cfg = doc["config"]
     if cfg.get("vae_checksum") and cfg["vae_checksum"] not in vae_checksums:
         raise CheckpointError(f"{path}: the student was distilled on a different VAE than {root / 'vae'}")
     for key in ("text_encoder", "diffusion", "canvas_frames"):

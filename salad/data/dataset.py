@@ -174,9 +174,9 @@ class WindowSampler:
                  item_weights: np.ndarray | None = None):
         """item_weights: how often to draw each motion (default: in proportion to its length)."""
         self.ds, self.window, self.overhang = dataset, window, overhang
-        w = np.array([len(it.features) for it in dataset.items], dtype=np.float64)
-        if item_weights is not None:
-            w = np.asarray(item_weights, dtype=np.float64)
+        if item_weights is None:
+            item_weights = [len(it.features) for it in dataset.items]
+        w = np.asarray(item_weights, dtype=np.float64)
         self.weights = w / w.sum()
 
     def batch(self, size: int, rng: np.random.Generator) -> dict:

@@ -59,6 +59,16 @@ def load_denoiser(path: str | Path) -> tuple[Denoiser, dict]:
     return model.eval(), doc
 
 
+def load_consistency_student(path: str | Path) -> tuple[Denoiser, dict, dict]:
+    """A consistency-distilled student, its checkpoint document and what it was distilled from
+    (meta["consistency"]: guidance range, teacher)."""
+    student, doc = load_denoiser(path)
+    info = doc.get("meta", {}).get("consistency")
+    if not student.config.guidance_embedding or not isinstance(info, dict):
+        raise CheckpointError(f"{path}: not a consistency-distilled student (train one with `salad train consistency`)")
+    return student, doc, info
+
+
 def vae_checksum(path: str | Path) -> str:
     """Identifies a VAE checkpoint by its weights file, so a denoiser can check its partner."""
     return read_checkpoint_config(path, kind="vae")["files"]["vae"]["sha256"]

@@ -30,7 +30,7 @@ from ..config import from_dict, to_dict
 from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_timesteps
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
 from ..models.denoiser import Denoiser
-from ..models.io import load_denoiser, save_denoiser, vae_checksum, vae_latent_checksums
+from ..models.io import load_consistency_student, load_denoiser, save_denoiser, vae_checksum, vae_latent_checksums
 from .configs import ConsistencyTrainConfig, DenoiserTrainConfig
 from .denoiser_task import DenoiserTask
 
@@ -229,10 +229,7 @@ class ConsistencyTask:
     def load_weights(self, model: nn.Module, path: Path) -> dict:
         """An exported student of this same teacher, e.g. one distilled on another machine, as
         both the student and its target network."""
-        student, doc = load_denoiser(path)
-        info = doc.get("meta", {}).get("consistency")
-        if not student.config.guidance_embedding or not isinstance(info, dict):
-            raise CheckpointError(f"{path}: not a consistency-distilled student")
+        student, doc, info = load_consistency_student(path)
         mine = self.teacher_doc["files"]["denoiser"]["sha256"]
         if info.get("teacher", {}).get("sha256") != mine:
             raise CheckpointError(f"{path} was distilled from another teacher than {self.cfg.teacher}'s denoiser; "
