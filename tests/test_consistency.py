@@ -392,6 +392,15 @@ def test_distillation_continues_an_exported_student_of_the_same_teacher(tiny_stu
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r2"),
                  "--continue-from", str(tiny_student / "consistency")]) == 2
     assert "distilled from another teacher" in capsys.readouterr().err
+    # ...but it may start a new run for it (a fine-tuned teacher's student starts from the old student)
+    cfg.write_text(cfg.read_text().replace("warmup_steps = 1\n", "warmup_steps = 10000\n"))
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r3"),
+                 "--init-from", str(tiny_student / "consistency")]) == 0
+    fresh, doc = load_denoiser(tmp_path / "r3" / "model")
+    rows = [json.loads(line) for line in (tmp_path / "r3" / "log.jsonl").read_text().splitlines()]
+    assert rows[0]["step"] == 1 and doc["meta"]["step"] == start + 2       # all of max_steps, from step 0
+    assert doc["meta"]["consistency"]["teacher"]["sha256"] != before["meta"]["consistency"]["teacher"]["sha256"]
+    assert torch.allclose(fresh.guidance_mlp[-1].weight, old, atol=1e-4)
 
 
 def test_a_run_does_not_resume_onto_another_teacher(tiny_model, tiny_dataset, tmp_path, capsys):

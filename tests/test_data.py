@@ -18,9 +18,20 @@ def test_every_label_pair_gets_three_varied_captions():
             caps = cap.captions_for(content, style, f"{content}/{style}", 3)
             assert len(set(caps)) == 3
             assert caps == cap.captions_for(content, style, f"{content}/{style}", 3), "reproducible"
-    waves = cap.captions_for("wave-left-hand", "exhausted", "x", 3)
-    assert all("left" in c for c in waves)
-    assert any(w in " ".join(waves) for w in ("exhausted", "worn", "wearily"))
+    waves = cap.captions_for("wave-left-hand", "exhausted", "x", 12)
+    assert len(set(waves)) == 12 and all("left" in c for c in waves)
+    adverbs, adjectives = cap.STYLE_PHRASES["exhausted"]
+    manner = [m.format(poss=p) for m in adverbs + adjectives for p in ("their", "his", "her")]
+    assert all(any(m in c for m in manner) for c in waves), "every caption says the style"
+    assert len({c.split(" wave")[0] for c in waves}) > 3, "subjects and word orders vary"
+
+
+def test_captions_vary_word_order_and_end_frames():
+    walks = {c for c, _ in cap.caption_variants("walk", "tired")}
+    assert "a man wearily walks forward" in walks and "a man walks forward wearily" in walks
+    assert "a man walks forward dragging his feet" in walks
+    plain = {c for c, _ in cap.caption_variants("bow", "normal")}
+    assert "a person bows and then stops" in plain and "a person bows" in plain
 
 
 def test_left_right_swapping():

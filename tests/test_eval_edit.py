@@ -12,6 +12,7 @@ from salad.eval.edit_bench import judge, regenerate, run_edit_benchmark
 from salad.eval.edit_metrics import (body_frame, dominant_wrist, is_monotonic, other_side, pose_distance,
                                      root_trajectory_distance, side_flipped, spearman, timing_correlation)
 from salad.eval.edit_suite import DEFAULT_SCALES, default_suite
+from salad.eval.edit_suite import MODES as MODES_ALL
 from salad.eval.physics import physical_checks
 from salad.motion import skeleton as sk
 from salad.motion.representation import mirror_features, mirror_joints
@@ -119,12 +120,52 @@ def test_judging_a_mirror_edit_needs_both_the_label_and_the_wrist():
     assert not unseen["success"]
 
 
+def test_side_swaps_must_reach_the_targets_height_and_styles_move_the_readouts():
+    swap = next(c for c in default_suite(("swap",)) if c.name == "raise right->left")
+    src_j, target_j = synthetic_wave("right"), synthetic_wave("left")
+    low = target_j.copy()
+    low[:, WRIST["left"], 1] -= 0.3                       # the new hand only gets to head height
+    src, target = _described("right", src_j), _described("left", target_j)
+    target["content"] = "raise-up-left-hand"
+    high = judge(swap, src, target, target_j, src_j, target)
+    short = judge(swap, src, {**target, "checks": physical_checks(low)}, low, src_j, target)
+    assert high["physics_ok"] and high["success"]
+    assert short["classifier_ok"] and short["physics_ok"] is False and not short["success"]
+    with pytest.raises(ValueError, match="needs the regenerated target"):
+        judge(swap, src, target, target_j, src_j)
+
+    weary = next(c for c in default_suite(("refine",)) if c.name == "walk +wearily")
+    walk, slow = synthetic_walk(80, speed=1.2), synthetic_walk(80, speed=0.9)
+    base = {"content": "walk", "style": "normal", "side": "none", "checks": physical_checks(walk)}
+    tired = {**base, "style": "exhausted", "checks": physical_checks(slow)}
+    assert judge(weary, base, tired, slow, walk)["success"]
+    assert not judge(weary, base, {**tired, "checks": base["checks"]}, walk, walk)["success"], "as fast as before"
+    old = next(c for c in default_suite(("refine",), "held-out") if "elderly" in c.name)
+    assert set(old.physics) == {"slower", "leans_forward"}
+    bent = slow.copy()
+    neck = sk.JOINT_NAMES.index("neck")
+    bent[:, neck:, 2] += 0.15 * (bent[:, neck:, 1] > 1.0)     # head, neck and shoulders forward
+    stooped = {**tired, "style": "elderly", "checks": physical_checks(bent)}
+    assert stooped["checks"]["trunk_lean_deg"] > base["checks"]["trunk_lean_deg"] + 3
+    assert judge(old, base, stooped, bent, walk)["physics_ok"]
+    assert not judge(old, base, {**stooped, "checks": physical_checks(slow)}, slow, walk)["physics_ok"]
+
+
+def test_the_held_out_suite_asks_for_every_kind_of_edit_in_other_words():
+    tuned, held = default_suite(), default_suite(suite="held-out")
+    assert {c.mode for c in held} == set(MODES_ALL) and {c.group for c in held} == {c.group for c in tuned}
+    tuned_prompts = {p for c in tuned for p in (c.source, c.target) if p}
+    assert not tuned_prompts & {p for c in held for p in (c.source, c.target) if p}
+    assert any(c.mode == "reweight" and c.word == "proudly" for c in held)
+    with pytest.raises(ValueError, match="unknown edit suite"):
+        default_suite(suite="mine")
+
+
 def test_suite_is_worded_in_the_caption_vocabulary():
-    from salad.data.captions import caption_variants
-    known = {text for content in ("walk", "run", "walk-turn-left", "walk-turn-right", "wave-left-hand",
-                                  "wave-right-hand", "raise-up-left-hand", "raise-up-right-hand")
-             for style in ("normal", "exhausted", "active") for text, _ in caption_variants(content, style)}
-    cases = default_suite()
+    from salad.data.captions import CONTENT_PHRASES, STYLE_PHRASES, caption_variants
+    known = {text for content in CONTENT_PHRASES for style in STYLE_PHRASES
+             for text, _ in caption_variants(content, style)}
+    cases = default_suite() + default_suite(suite="held-out")
     assert {c.mode for c in cases} == {"mirror", "swap", "refine", "reweight"}
     for c in cases:
         for prompt in (c.source, c.target, c.baseline):
@@ -202,7 +243,8 @@ def test_benchmark_end_to_end_on_the_tiny_model(tiny_model, pipe, classifier, tm
     report = (out / "report.md").read_text()
     cases = default_suite()
     assert len(res["records"]) == len(cases)
-    assert set(res["summary"]) == {"mirror (all)", "mirror (upper)", "swap: content", "swap: style", "refine: style"}
+    assert set(res["summary"]) == {"mirror (all)", "mirror (upper)", "swap: content", "swap: side", "swap: style",
+                                   "refine: style"}
     for block in res["summary"].values():
         for method in ("edit", "baseline"):
             assert 0.0 <= block[method]["success"]["mean"] <= 1.0
@@ -214,10 +256,14 @@ def test_benchmark_end_to_end_on_the_tiny_model(tiny_model, pipe, classifier, tm
     for name, r in res["reweight"].items():
         assert set(r["amplitude"]) == {f"{s:g}" for s in DEFAULT_SCALES}
         assert r["preservation"]["pose_mpjpe_m"]["1"]["mean"] < 2e-3, name
+        assert r["preservation"]["root_dist_m"]["1"]["mean"] < 2e-3, name
+        assert 0.0 <= r["within_bounds"]["mean"] <= 1.0
         assert -1.0 <= r["spearman"]["mean"] <= 1.0
     frames = res["settings"]["frames"]
     assert set(frames.values()) == {pipe.frames_for(min(4.0, pipe.max_seconds))}   # one fixed length per case
-    assert res["time_s"]["edit_calls"] == 8 + 8 + 5 + 3 * len(DEFAULT_SCALES)
-    for heading in ("## Success and preservation", "## Per case", "## Attention re-weighting", "| mirror (all) |"):
+    assert res["time_s"]["edit_calls"] == 8 + 10 + 5 + 3 * len(DEFAULT_SCALES)
+    assert res["settings"]["suite"] == "tuned"
+    for heading in ("## Success and preservation", "## Per case", "## Attention re-weighting", "| mirror (all) |",
+                    "Root path distance (m) against the source per scale"):
         assert heading in report
     assert "## Success and preservation" in capsys.readouterr().out

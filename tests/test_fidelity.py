@@ -9,19 +9,24 @@ from salad.eval import EMBEDDED_CLASSIFIER
 from salad.eval.classifiers import load_classifier
 from salad.eval.fidelity import (RULES, checks_for, evaluate_fidelity, fidelity_classes, judge, measure,
                                  report_markdown)
-from salad.eval.paraphrases import HELD_OUT
+from salad.eval.paraphrases import HELD_OUT, PROMPT_SETS
 from salad.pipeline import load_pipeline
 
 
 def test_held_out_paraphrases_are_never_training_captions():
     captions = {c.lower() for content in CONTENT_PHRASES for style in STYLE_PHRASES
                 for c, _ in caption_variants(content, style)}
-    for key, prompts in HELD_OUT.items():
-        content, _, style = key.partition("/")
-        assert content in CONTENT_PHRASES and (not style or style in STYLE_PHRASES), key
-        assert len(set(prompts)) >= 2, key
-        for p in prompts:
-            assert p.lower() not in captions, f"{p!r} is a training caption"
+    assert set(PROMPT_SETS["b"]) == set(HELD_OUT), "both sets prompt every class"
+    for held_out in PROMPT_SETS.values():
+        for key, prompts in held_out.items():
+            content, _, style = key.partition("/")
+            assert content in CONTENT_PHRASES and (not style or style in STYLE_PHRASES), key
+            assert len(set(prompts)) >= 2, key
+            for p in prompts:
+                assert p.lower() not in captions, f"{p!r} is a training caption"
+    assert {c.prompts for c in fidelity_classes(["walk"], "b")} == {PROMPT_SETS["b"]["walk"]}
+    with pytest.raises(ValueError, match="unknown prompt set"):
+        fidelity_classes(prompt_set="c")
 
 
 def test_every_check_has_a_stated_rule():

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from salad.eval.paraphrases import HELD_OUT
+from salad.eval.paraphrases import PROMPT_SETS
 from salad.models.vocabulary import (ACTION_SIMILARITY, FEATURES_FILE, VOCABULARY_FILE, PromptCheck,
                                      build_vocabulary, save_vocabulary)
 
@@ -67,7 +67,7 @@ def test_untrained_actions_and_other_languages_are_flagged_with_the_nearest_know
 
 
 def test_held_out_paraphrases_of_trained_actions_are_rarely_called_untrained(embedded_check):
-    prompts = [p for ps in HELD_OUT.values() for p in ps]
+    prompts = [p for held_out in PROMPT_SETS.values() for ps in held_out.values() for p in ps]
     flagged = [p for p in prompts if embedded_check.nearest(p, 1)[0][1] < ACTION_SIMILARITY]
     assert len(flagged) <= 3, flagged
     assert embedded_check.nearest("someone gives a polite bow", 1)[0][0] == "a person bows"

@@ -13,9 +13,10 @@ from ..eval import EMBEDDED_CLASSIFIER, EMBEDDED_EVALUATOR
 from ..eval.classifiers import load_classifier
 from ..eval.control_bench import OMNICONTROL_JOINTS, evaluate_control, parse_density, parse_joints, write_control_report
 from ..eval.edit_bench import run_edit_benchmark
-from ..eval.edit_suite import DEFAULT_SCALES, MODES, default_suite
+from ..eval.edit_suite import DEFAULT_SCALES, MODES, SUITES, default_suite
 from ..eval.fidelity import evaluate_fidelity, fidelity_classes, report_markdown
 from ..eval.length_dist import DEFAULT_BIN_FRAMES, MIN_FRAMES, evaluate_lengths, write_length_report
+from ..eval.paraphrases import PROMPT_SETS
 from ..eval.real_edit_bench import SDEDIT_STRENGTHS, run_real_edit_bench
 from ..files import atomic_write_text
 from .common import add_device, add_sampling, device_of, progress_bar
@@ -153,6 +154,9 @@ def add_eval_edit(sub) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="first seed")
     add_sampling(p)
     p.add_argument("--modes", default=",".join(MODES), help=f"comma list of {', '.join(MODES)}")
+    p.add_argument("--suite", choices=SUITES, default="tuned",
+                   help="tuned (default): the cases the editing defaults were chosen on; held-out: the same kinds "
+                        "of edit in other wording, never used for tuning")
     p.add_argument("--scales", default=",".join(f"{s:g}" for s in DEFAULT_SCALES),
                    help="re-weighting scales, comma list in [-3, 3]")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
@@ -179,7 +183,7 @@ def cmd_eval_edit(a) -> int:
     device = device_of(a)
     modes = _parse_list(a.modes, "modes")
     scales = _parse_list(a.scales, "scales", float)
-    cases = default_suite(modes)
+    cases = default_suite(modes, a.suite)
     out = Path(a.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a directory")
@@ -187,7 +191,8 @@ def cmd_eval_edit(a) -> int:
     clf.meta["path"] = str(a.classifier)
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device)
     results = run_edit_benchmark(pipe, clf, cases, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
-                                 scales=scales, seed_base=a.seed, progress=lambda m: print(m, flush=True))
+                                 scales=scales, seed_base=a.seed, progress=lambda m: print(m, flush=True),
+                                 suite=a.suite)
     write_results(results, out)
     print(format_report(results))
     print(f"wrote {out / 'results.json'} and {out / 'report.md'}")
@@ -202,6 +207,9 @@ def add_eval_fidelity(sub) -> None:
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--classes", default=None, help="comma list of classes (default: all), e.g. walk,kick")
     p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--prompt-set", choices=tuple(PROMPT_SETS), default="a",
+                   help="which held-out paraphrase set prompts each class (salad.eval.paraphrases): a (default), or "
+                        "b, written later to check that template changes generalise beyond set a's wording")
     p.add_argument("--length", choices=("auto", "prior"), default="auto",
                    help="auto (default): the model ends each motion itself; prior: the training data's length for "
                         "the prompt (generate --seconds prior)")
@@ -221,7 +229,7 @@ def cmd_eval_fidelity(a) -> int:
 
     device = device_of(a)
     classes = [c.strip() for c in a.classes.split(",") if c.strip()] if a.classes else None
-    fidelity_classes(classes)                                    # unknown names fail before loading anything
+    fidelity_classes(classes, a.prompt_set)                      # unknown names fail before loading anything
     read_labels(a.data)
     clf = None
     if a.classifier != "none":
@@ -230,7 +238,8 @@ def cmd_eval_fidelity(a) -> int:
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device)
     bar, update = progress_bar("generating")
     results = evaluate_fidelity(pipe, a.data, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
-                                classes=classes, split=a.split, classifier=clf, progress=update, length=a.length)
+                                classes=classes, split=a.split, classifier=clf, progress=update, length=a.length,
+                                prompt_set=a.prompt_set)
     bar.close()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

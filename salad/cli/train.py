@@ -8,8 +8,8 @@ def cmd_train(a) -> int:
     from ..training.loop import Trainer
     if a.continue_from and a.what not in ("vae", "denoiser", "consistency"):
         raise ValueError(f"--continue-from applies to the vae, the denoiser and consistency, not to {a.what}")
-    if a.init_from and a.what not in ("vae", "vae-san", "denoiser"):
-        raise ValueError(f"--init-from applies to the vae, vae-san and the denoiser, not to {a.what}")
+    if a.init_from and a.what not in ("vae", "vae-san", "denoiser", "consistency"):
+        raise ValueError(f"--init-from applies to the vae, vae-san, the denoiser and consistency, not to {a.what}")
     if a.teacher and a.what != "consistency":
         raise ValueError(f"--teacher applies to consistency distillation, not to {a.what}")
     if a.what == "vae":
@@ -66,7 +66,8 @@ def add_parser(sub) -> None:
                    help="consistency: override teacher, the model directory (vae/ + denoiser/) to distil")
     start = t.add_mutually_exclusive_group()
     start.add_argument("--init-from", metavar="MODEL_DIR",
-                       help="fine-tune: start a new run (step 0) from an exported model's weights")
+                       help="fine-tune: start a new run (step 0) from an exported model's weights; consistency: "
+                            "a student, also one of an earlier teacher (e.g. before the teacher's fine-tune)")
     start.add_argument("--continue-from", metavar="MODEL_DIR",
                        help="train an exported model further: its weights and step count, so the LR schedule and "
                             "max_steps count on from its step; the fresh optimiser warms up again over warmup_steps. "

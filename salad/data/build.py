@@ -42,7 +42,7 @@ from ..files import atomic_write
 SPLIT_PATTERN = "TTTXTTTTTTXTTTVTTXTT"   # 16 train, 1 val, 3 test in every 20 clips of a stratum run
 SPLIT_NAMES = {"T": "train", "V": "val", "X": "test"}
 MIN_FRAMES = 16                          # 0.8 s at 20 fps
-CAPTIONS_PER_CLIP = 5   # varied verb phrases and manner words per motion (paraphrases understood)
+CAPTIONS_PER_CLIP = 12  # varied verb phrases, word orders and manner words per motion (paraphrases understood)
 
 
 class BuildError(RuntimeError):

@@ -20,10 +20,10 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .edit_suite import AMPLITUDES, DEFAULT_SCALES, EditCase, default_suite
+from .edit_suite import AMPLITUDES, DEFAULT_SCALES, REWEIGHT_BOUNDS, TARGET_HEIGHT_SLACK, EditCase, default_suite
 
 CHECK_KEYS = ("left_wrist_path_m", "right_wrist_path_m", "left_wrist_height_m", "right_wrist_height_m",
-              "root_speed_mps", "turn_deg")
+              "root_speed_mps", "turn_deg", "trunk_lean_deg")
 HEADS = ("content", "style", "side")
 BASELINE_BATCH = 16
 
@@ -77,34 +77,51 @@ def _describe(labels: dict[str, str], checks: dict[str, float]) -> dict[str, Any
     return {**{h: labels[h] for h in HEADS}, "checks": {k: round(checks[k], 4) for k in CHECK_KEYS}}
 
 
-def _physics_ok(case: EditCase, source: dict, out: dict) -> bool | None:
+def _physical_sign(kind: str, case: EditCase, source: dict, out: dict, target: dict | None) -> bool:
     from .edit_metrics import dominant_wrist, other_side
     s, o = source["checks"], out["checks"]
-    kind = case.physics
-    if kind is None:
-        return None
     if kind == "faster":
         return o["root_speed_mps"] > s["root_speed_mps"]
+    if kind == "slower":
+        return o["root_speed_mps"] < s["root_speed_mps"]
     if kind == "turn_left":
         return o["turn_deg"] > 0
     if kind == "turn_right":
         return o["turn_deg"] < 0
+    if kind == "leans_forward":
+        return o["trunk_lean_deg"] > s["trunk_lean_deg"]
+    key = AMPLITUDES[case.amplitude]
     if kind == "wrist_flip":
         # the case's own amplitude: travel for a wave, height for a raise (a raised arm hardly travels)
-        key = AMPLITUDES[case.amplitude]
         before = dominant_wrist(s[key.format(side="left")], s[key.format(side="right")])
         return dominant_wrist(o[key.format(side="left")], o[key.format(side="right")]) == other_side(before)
+    acting = key.format(side=case.acting_side)
+    if kind == "livelier":
+        return o[acting] > s[acting]
+    if kind == "reaches_target_height":
+        if target is None:
+            raise ValueError(f"case {case.name!r}: the target-height check needs the regenerated target")
+        return o[acting] >= target["checks"][acting] - TARGET_HEIGHT_SLACK
     raise ValueError(f"unknown physical check {kind!r}")
 
 
-def judge(case: EditCase, source: dict, out: dict, joints: np.ndarray, reference: np.ndarray) -> dict[str, Any]:
-    """Success and preservation of one output (edit or baseline) against its source."""
+def _physics_ok(case: EditCase, source: dict, out: dict, target: dict | None = None) -> bool | None:
+    """All of the case's directional checks (None when it has none)."""
+    if not case.physics:
+        return None
+    return all(_physical_sign(kind, case, source, out, target) for kind in case.physics)
+
+
+def judge(case: EditCase, source: dict, out: dict, joints: np.ndarray, reference: np.ndarray,
+          target: dict | None = None) -> dict[str, Any]:
+    """Success and preservation of one output (edit or baseline) against its source; `target`: the
+    regenerated target prompt's description, for checks that compare with it."""
     from .edit_metrics import pose_distance, root_trajectory_distance, side_flipped, timing_correlation
     hits = []
     for head, want in case.expect.items():
         hits.append(side_flipped(source[head], out[head]) if want == "flip" else out[head] == want)
     classifier_ok = all(hits)
-    physics_ok = _physics_ok(case, source, out)
+    physics_ok = _physics_ok(case, source, out, target)
     return {
         **{h: out[h] for h in HEADS}, "checks": out["checks"],
         "classifier_ok": classifier_ok, "physics_ok": physics_ok,
@@ -182,8 +199,9 @@ def _record(case: EditCase, seed: int, frames: int, motions: dict, described: di
     reference = mirror_joints(src_joints) if case.reference == "mirrored" else src_joints
     if case.mode != "reweight":
         edit_key = ("edit", case.name, seed)
-        rec["edit"] = judge(case, src, described[edit_key], motions[edit_key].joints, reference)
-        rec["baseline"] = judge(case, src, described[base_key], motions[base_key].joints, reference)
+        target = described[base_key]
+        rec["edit"] = judge(case, src, described[edit_key], motions[edit_key].joints, reference, target)
+        rec["baseline"] = judge(case, src, target, motions[base_key].joints, reference, target)
         return rec
     keys = [("edit", case.name, seed, s) for s in scales]
     judged = [judge(case, src, described[k], motions[k].joints, reference) for k in keys]
@@ -193,18 +211,20 @@ def _record(case: EditCase, seed: int, frames: int, motions: dict, described: di
                spearman=spearman(scales, amps), monotonic=is_monotonic(amps),
                content=[described[k]["content"] for k in keys],
                **{m: [j[m] for j in judged] for m in ("root_dist_m", "timing_corr", "pose_mpjpe_m")})
+    rec["within_bounds"] = all(v is None or v <= bound for m, bound in REWEIGHT_BOUNDS.items() for v in rec[m])
     return rec
 
 
 def run_edit_benchmark(pipe, classifier, cases: Sequence[EditCase] | None = None, seeds: int = 3,
                        steps: int = 50, cfg: float = 7.5, sampler: str = "ddim",
                        scales: Sequence[float] = DEFAULT_SCALES, seed_base: int = 0,
-                       progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Run every case for `seeds` seeds (seed_base, seed_base + 1, ...) and return the settings, the raw
-    records per (case, seed) and their summaries (layout in salad.eval.edit_report)."""
+                       progress: Callable[[str], None] | None = None, suite: str = "tuned") -> dict[str, Any]:
+    """Run every case (default: all of `suite`'s) for `seeds` seeds (seed_base, seed_base + 1, ...) and
+    return the settings, the raw records per (case, seed) and their summaries (layout in
+    salad.eval.edit_report)."""
     from .edit_report import summarize
 
-    cases = list(default_suite() if cases is None else cases)
+    cases = list(default_suite(suite=suite) if cases is None else cases)
     if not cases:
         raise ValueError("no cases to run")
     scales = _check_settings(seeds, scales)
@@ -232,7 +252,7 @@ def run_edit_benchmark(pipe, classifier, cases: Sequence[EditCase] | None = None
     records = [_record(c, seed, frames_of[c.name], motions, described, scales) for c in cases for seed in seed_list]
 
     settings = {"model": getattr(pipe, "source", ""), "classifier": getattr(classifier, "meta", {}).get("path", ""),
-                "seeds": seed_list, **sampling, "scales": list(scales), "frames": frames_of,
+                "suite": suite, "seeds": seed_list, **sampling, "scales": list(scales), "frames": frames_of,
                 "edit_defaults": _edit_defaults(edits)}
     results = {"settings": settings, "cases": [_case_dict(c) for c in cases], "records": records}
     results.update(summarize(cases, records, scales))

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..files import atomic_write_text
 from .metrics import mean_ci
+from .edit_suite import REWEIGHT_BOUNDS, TARGET_HEIGHT_SLACK
 
 SUCCESS = ("success", "classifier_ok", "physics_ok")
 # preservation measures with the direction that is better: +1 higher, -1 lower
@@ -86,6 +87,7 @@ def _reweight_case(records: list[dict], scales: Sequence[float]) -> dict[str, An
             "source_amplitude": stat([r["source_amplitude"] for r in records]),
             "baseline_amplitude": stat([r["baseline_amplitude"] for r in records]),
             "spearman": stat([r["spearman"] for r in records]), "monotonic": stat([r["monotonic"] for r in records]),
+            "within_bounds": stat([r["within_bounds"] for r in records]),
             "preservation": {m: per[m] for m in ("root_dist_m", "timing_corr", "pose_mpjpe_m")},
             "source_matches_prompt": stat([r["source_matches_prompt"] for r in records])}
 
@@ -108,7 +110,8 @@ def summarize(cases: Sequence, records: list[dict], scales: Sequence[float]) -> 
                                     **_reweight_case([r for r in weights if r["case"] == c.name], scales)}
                            for c in cases if c.mode == "reweight"}
         out["reweight_overall"] = {"spearman": stat([r["spearman"] for r in weights]),
-                                   "monotonic": stat([r["monotonic"] for r in weights]), "n": len(weights)}
+                                   "monotonic": stat([r["monotonic"] for r in weights]),
+                                   "within_bounds": stat([r["within_bounds"] for r in weights]), "n": len(weights)}
     return out
 
 
@@ -172,13 +175,16 @@ def _reweight_table(results: dict[str, Any]) -> list[str]:
         what = f"{r['acting_side']} {r['amplitude_measure'].replace('_', ' ')} (m)"
         lines.append(f"| {name} | {r['word']} | {what} | " + " | ".join(_fmt(r["amplitude"][k], 3) for k in keys) +
                      f" | {_fmt(r['baseline_amplitude'], 3)} | {_fmt(r['spearman'])} | {_fmt(r['monotonic'])} |")
-    lines += ["", "Lower-body pose MPJPE (m) against the source per scale:", "",
-              "| Case | " + " | ".join(f"s = {k}" for k in keys) + " |", "|" + "---|" * (len(keys) + 1)]
-    for name, r in results["reweight"].items():
-        lines.append(f"| {name} | " + " | ".join(_fmt(r["preservation"]["pose_mpjpe_m"][k], 3) for k in keys) + " |")
+    for measure, title in (("pose_mpjpe_m", "Lower-body pose MPJPE"), ("root_dist_m", "Root path distance")):
+        lines += ["", f"{title} (m) against the source per scale (bound {REWEIGHT_BOUNDS[measure]:.2f} m):", "",
+                  "| Case | " + " | ".join(f"s = {k}" for k in keys) + " | Within both bounds at every s ↑ |",
+                  "|" + "---|" * (len(keys) + 2)]
+        for name, r in results["reweight"].items():
+            lines.append(f"| {name} | " + " | ".join(_fmt(r["preservation"][measure][k], 3) for k in keys) +
+                         f" | {_fmt(r.get('within_bounds'))} |")
     o = results["reweight_overall"]
-    lines += ["", f"All re-weighting cases: Spearman ρ {_fmt(o['spearman'])}, monotonic in s {_fmt(o['monotonic'])} "
-                  f"(n = {o['n']} case × seed runs)."]
+    lines += ["", f"All re-weighting cases: Spearman ρ {_fmt(o['spearman'])}, monotonic in s {_fmt(o['monotonic'])}, "
+                  f"within the bounds at every s {_fmt(o.get('within_bounds'))} (n = {o['n']} case × seed runs)."]
     return lines
 
 
@@ -186,7 +192,8 @@ def format_report(results: dict[str, Any]) -> str:
     """The Markdown report: group summary, verdicts, per-case table and the re-weighting table."""
     s, t = results["settings"], results.get("time_s", {})
     lines = ["# Editing benchmark", "",
-             f"Model `{s['model']}`, classifier `{s['classifier']}`; seeds {s['seeds']}, {s['steps']} {s['sampler']} "
+             f"Model `{s['model']}`, classifier `{s['classifier']}`; suite {s.get('suite', 'tuned')}; seeds "
+             f"{s['seeds']}, {s['steps']} {s['sampler']} "
              f"steps, CFG {s['cfg']:g}; {t.get('edit_calls', '?')} edits and {t.get('baseline_motions', '?')} baseline "
              f"generations in {t.get('total', '?')} s. Values are mean ± 95% CI (1.96·std/√n) over cases × "
              "seeds.", ""]
@@ -199,9 +206,12 @@ def format_report(results: dict[str, Any]) -> str:
         lines += ["", "## Attention re-weighting", ""] + _reweight_table(results)
     lines += ["", "## Definitions", "",
               "- Success: the edited motion carries the target labels of the content/style/side classifier (mirror: "
-              "the side flips left ↔ right against the source) and, where the case has one, the physical sign agrees "
-              "(mirror: the other wrist travels further in a wave, rises higher in a raise; walk → run: faster root; "
-              "turn right: negative turning angle).",
+              "the side flips left ↔ right against the source) and, where the case has them, every physical sign "
+              "agrees (mirror: the other wrist travels further in a wave, rises higher in a raise; walk → run or an "
+              "energetic style: faster root; an exhausted or elderly style: slower root; elderly: the trunk leans "
+              "further from vertical; an energetic wave: the hand travels further; turn right: negative turning "
+              f"angle; a side swap: the new hand rises to within {TARGET_HEIGHT_SLACK:.2f} m of its height in the "
+              "regenerated target).",
               "- Baseline: the target prompt (mirror: left and right swapped; re-weighting: the plain prompt) "
               "regenerated from the same noise and length without attention control.",
               "- Label kept: the classifier's style (content edits) or content (style edits) equals the source's.",
@@ -210,7 +220,10 @@ def format_report(results: dict[str, Any]) -> str:
               "over the parts that should not change (lower body for arm edits, all joints against the "
               "mirrored source for full mirroring). All against the source (mirror all: the mirrored source).",
               "- Re-weighting amplitude: wrist path length (m, relative to the pelvis) or maximum wrist height above "
-              "the pelvis of the named hand; monotonic = never decreasing with s (and not constant)."]
+              "the pelvis of the named hand; monotonic = never decreasing with s (and not constant). Bounds: at "
+              "every s the root path stays within "
+              f"{REWEIGHT_BOUNDS['root_dist_m']:.2f} m and the lower body's pose within "
+              f"{REWEIGHT_BOUNDS['pose_mpjpe_m']:.2f} m of the source (the cases are standing one-place actions)."]
     return "\n".join(lines) + "\n"
 
 

@@ -12,7 +12,7 @@ checks that matter for it, with the tolerances in RULES, stated before anything 
 The table is made twice from the same samples: the raw decoder output, and the output after the
 clean-up (salad.motion.cleanup: rigid bones, then the foot lock) that generate() applies by default.
 
-    salad eval-fidelity --data data/bandai-hml --out DIR [--seeds 3] [--steps 50]
+    salad eval-fidelity --data data/bandai-hml --out DIR [--seeds 3] [--steps 50] [--prompt-set b]
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ from ..motion.cleanup import clean_motion
 from ..motion.representation import FPS, features_to_joints
 from . import physics
 from ..data.labels import read_labels
-from .paraphrases import HELD_OUT
+from .paraphrases import PROMPT_SETS
 
 MIN_REFERENCE = 4
 UNSTYLED = "normal"          # the style label of clips whose captions name no manner
@@ -76,17 +76,20 @@ class FidelityClass:
     checks: tuple[str, ...]
 
 
-def fidelity_classes(keys=None) -> list[FidelityClass]:
+def fidelity_classes(keys=None, prompt_set: str = "a") -> list[FidelityClass]:
+    """The benchmark's classes (all, or those named in `keys`) with the prompts of one held-out set."""
+    if prompt_set not in PROMPT_SETS:
+        raise ValueError(f"unknown prompt set {prompt_set!r}; known: {', '.join(PROMPT_SETS)}")
     out = []
-    for key, prompts in HELD_OUT.items():
+    for key, prompts in PROMPT_SETS[prompt_set].items():
         if keys and key not in keys:
             continue
         content, _, style = key.partition("/")
         out.append(FidelityClass(key, content, style or None, prompts, checks_for(content)))
     if keys:
-        unknown = sorted(set(keys) - set(HELD_OUT))
+        unknown = sorted(set(keys) - set(PROMPT_SETS[prompt_set]))
         if unknown:
-            raise ValueError(f"unknown fidelity classes {unknown}; known: {', '.join(HELD_OUT)}")
+            raise ValueError(f"unknown fidelity classes {unknown}; known: {', '.join(PROMPT_SETS[prompt_set])}")
     return out
 
 
@@ -198,7 +201,8 @@ def _shown(path: str) -> str:
 
 def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | None = None, cfg: float = 7.5,
                       sampler: str = "ddim", classes=None, split: str = "test", classifier=None,
-                      progress: Callable[[int, int], None] | None = None, length: str = "auto") -> dict:
+                      progress: Callable[[int, int], None] | None = None, length: str = "auto",
+                      prompt_set: str = "a") -> dict:
     """Per-class checks of generated against real motion; with a `classifier` (salad.eval.classifiers), also
     the share of generated motions it puts in the prompt's action (and style, for styled classes).
     length: "auto" (the model's own) or "prior" (Pipeline.frames_for)."""
@@ -209,7 +213,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | 
     steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler)     # the report names the steps used
     labels = read_labels(data_root)
     present = {lab.content for lab in labels.values()}
-    todo = [c for c in fidelity_classes(classes) if c.content in present]
+    todo = [c for c in fidelity_classes(classes, prompt_set) if c.content in present]
     if not todo:
         raise ValueError(f"{data_root}: none of the fidelity classes is in this dataset")
     total = sum(len(c.prompts) for c in todo) * seeds
@@ -252,7 +256,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | 
         rows.append(row)
     return {"rows": rows, "rules": RULES, "settings": {
         "seeds": seeds, "steps": steps, "cfg": cfg, "sampler": sampler, "split": split, "model": _shown(pipe.source),
-        "length": length, "seconds": round(time.perf_counter() - started, 1)},
+        "length": length, "prompt_set": prompt_set, "seconds": round(time.perf_counter() - started, 1)},
         "summary": summary(rows, classifier)}
 
 
@@ -292,7 +296,7 @@ def _classified_cell(c: dict) -> str:
 def report_markdown(results: dict) -> str:
     s = results["settings"]
     lines = ["# Fidelity per class", "",
-             f"Model `{s['model']}`; held-out paraphrases × {s['seeds']} seeds, "
+             f"Model `{s['model']}`; held-out paraphrases (set {s.get('prompt_set', 'a')}) × {s['seeds']} seeds, "
              f"{'the length prior' if s.get('length') == 'prior' else 'auto length'}, {s['sampler']} "
              f"{s['steps']} steps, CFG {s['cfg']}; reference: real clips of the class in the prompt's style "
              f"({UNSTYLED} where it names none) from the {s['split']} split, widened to all splits, then all "

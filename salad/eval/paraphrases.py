@@ -35,3 +35,37 @@ HELD_OUT: dict[str, tuple[str, ...]] = {
     "walk/elderly": ("an old man shuffles forward", "a person walks ahead like a frail old man"),
     "walk/active": ("a person walks forward briskly and full of energy", "someone marches ahead with lots of energy"),
 }
+
+# A second set, written later and kept apart the same way, to tell whether a change to the caption templates
+# helps paraphrase in general or only the first set's wording. `salad eval-fidelity --prompt-set b`.
+HELD_OUT_B: dict[str, tuple[str, ...]] = {
+    "walk": ("a person makes their way forward on foot", "a woman goes for a short walk straight ahead"),
+    "run": ("a runner moves forward at a comfortable jog", "a man runs ahead without hurrying"),
+    "dash": ("a person runs as fast as they can", "an athlete sprints flat out down a track"),
+    "walk-back": ("a man steps backwards a few times", "a person moves back while still facing forward"),
+    "walk-left": ("a woman walks forward on a slant to the left", "a person heads forward and a bit to the left"),
+    "walk-right": ("a woman walks forward on a slant to the right", "a person heads forward and a bit to the right"),
+    "walk-turn-left": ("a person walks and swings around to their left", "a man walking forward turns left"),
+    "walk-turn-right": ("a person walks and swings around to their right", "a man walking forward turns right"),
+    "bow": ("a man bows down respectfully", "a person lowers the upper body in a deep bow"),
+    "bye": ("a man waves his right hand as he leaves", "a person bids goodbye with the right hand"),
+    "byebye": ("a woman waves goodbye with both of her hands", "a person says goodbye waving two hands"),
+    "guide": ("a person points out the way with the right arm", "a man shows someone where to go with his right hand"),
+    "respond": ("a person lifts the left hand to answer", "a woman puts her left hand up in response"),
+    "call": ("a person raises both arms and shouts to someone", "a man calls out loudly with both hands up"),
+    "punch": ("a boxer punches forward several times", "a person hits the air with the fists"),
+    "kick": ("a person kicks a leg up high", "a fighter does a few kicks"),
+    "slash": ("a person slashes the air with a sword", "a samurai swings a katana"),
+    "dance-short": ("a woman dances around happily", "a person does a little dance"),
+    "wave-left-hand": ("a woman waves with her left hand", "a man lifts his left hand and waves it"),
+    "wave-right-hand": ("a woman waves with her right hand", "a man lifts his right hand and waves it"),
+    "wave-both-hands": ("a person waves both arms in the air", "a man waves with both of his hands"),
+    "raise-up-left-hand": ("a woman raises her left arm", "a person sticks the left hand up"),
+    "raise-up-right-hand": ("a woman raises her right arm", "a person sticks the right hand up"),
+    "raise-up-both-hands": ("a person throws both arms up", "a man raises both of his arms"),
+    "walk/exhausted": ("a man walks forward, drained and out of energy", "an exhausted woman walks ahead"),
+    "walk/elderly": ("an elderly woman walks forward slowly", "a person walks ahead like an old man"),
+    "walk/active": ("a person walks forward with a lively step", "a man walks ahead vigorously"),
+}
+
+PROMPT_SETS: dict[str, dict[str, tuple[str, ...]]] = {"a": HELD_OUT, "b": HELD_OUT_B}

@@ -226,12 +226,13 @@ class ConsistencyTask:
     def loss(self, model: nn.Module, batch: dict):
         return model(batch)
 
-    def load_weights(self, model: nn.Module, path: Path) -> dict:
-        """An exported student of this same teacher, e.g. one distilled on another machine, as
-        both the student and its target network."""
+    def load_weights(self, model: nn.Module, path: Path, continuing: bool = False) -> dict:
+        """An exported student as both the student and its target network. Continuing takes only a
+        student of this same teacher (e.g. one distilled on another machine); a new run (--init-from)
+        may start from the student of an earlier teacher, e.g. the one this teacher was fine-tuned from."""
         student, doc, info = load_consistency_student(path)
         mine = self.teacher_doc["files"]["denoiser"]["sha256"]
-        if info.get("teacher", {}).get("sha256") != mine:
+        if continuing and info.get("teacher", {}).get("sha256") != mine:
             raise CheckpointError(f"{path} was distilled from another teacher than {self.cfg.teacher}'s denoiser; "
                                   "continue it with its own teacher, or distil afresh")
         load_state_strict(model.student, student.state_dict(), str(path))

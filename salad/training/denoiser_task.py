@@ -250,7 +250,7 @@ class DenoiserTask:
     def config_dict(self) -> dict:
         return to_dict(self.cfg)
 
-    def load_weights(self, model: nn.Module, path: Path) -> dict:
+    def load_weights(self, model: nn.Module, path: Path, continuing: bool = False) -> dict:
         denoiser, doc = load_denoiser(path)
         # Same-shaped weights from another latent space or text encoder would load fine and
         # train into nonsense, so the partners are checked by identity, not by shape.

@@ -38,8 +38,9 @@ class Task(Protocol):
     def loss(self, model: torch.nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]: ...
     def export(self, model: torch.nn.Module, path: Path, meta: dict[str, Any]) -> None: ...
     def config_dict(self) -> dict: ...
-    # optional, for --init-from / --continue-from; returns the exported model's meta (step, samples_seen):
-    # def load_weights(self, model: torch.nn.Module, path: Path) -> dict
+    # optional, for --init-from / --continue-from (continuing=True); returns the exported model's meta
+    # (step, samples_seen):
+    # def load_weights(self, model: torch.nn.Module, path: Path, continuing: bool) -> dict
 
 
 def lr_factor(step: int, cfg: OptimConfig, warm_from: int = 0) -> float:
@@ -223,7 +224,7 @@ class Trainer:
         if recover_checkpoint(self.out / STATE_DIR):
             return
         path = Path(path)
-        meta = self.task.load_weights(self.model, path) or {}
+        meta = self.task.load_weights(self.model, path, continuing=carry_step) or {}
         if carry_step:
             step = int(meta.get("step", 0))
             if step >= self.optim_cfg.max_steps:

@@ -66,7 +66,7 @@ class VAETask:
         mu, _ = vae.encode(b["features"], b["activation"])
         return float(1.0 / mu.float().std().clamp_min(1e-6))
 
-    def load_weights(self, model: nn.Module, path: Path) -> dict:
+    def load_weights(self, model: nn.Module, path: Path, continuing: bool = False) -> dict:
         vae, _, _, doc = load_vae(path)
         load_state_strict(model.vae, vae.state_dict(), str(path))
         return doc.get("meta", {})
