@@ -13,8 +13,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..files import atomic_write_text
-from .metrics import mean_ci
 from .edit_suite import REWEIGHT_BOUNDS, TARGET_HEIGHT_SLACK
+from .metrics import mean_ci
 
 SUCCESS = ("success", "classifier_ok", "physics_ok")
 # preservation measures with the direction that is better: +1 higher, -1 lower

@@ -236,6 +236,6 @@ def default_suite(modes=MODES, suite: str = "tuned") -> list[EditCase]:
         raise ValueError(f"unknown edit suite {suite!r}; choose from {', '.join(SUITES)}")
     if suite == "held-out":
         cases = _held_out_cases()
-        return [c for m in MODES if m in modes for c in cases if c.mode == m]
-    build = {"mirror": _mirror_cases, "swap": _swap_cases, "refine": _refine_cases, "reweight": _reweight_cases}
-    return [case for m in MODES if m in modes for case in build[m]()]
+    else:
+        cases = _mirror_cases() + _swap_cases() + _refine_cases() + _reweight_cases()
+    return [c for m in MODES if m in modes for c in cases if c.mode == m]
