@@ -191,19 +191,21 @@ class Pipeline:
 
     def denoise(self, text, noise: torch.Tensor, sampler: str, steps: int, cfg: float, auto: bool,
                 seed: int | list[int] = 0, frame_mask: torch.Tensor | None = None, shared_noise: bool = False,
-                on_step=None) -> torch.Tensor:
+                on_step=None, blend=None) -> torch.Tensor:
         """Clean latents from `noise` with `text` in sampler_text's layout. The consistency sampler
         re-noises between steps with draws seeded by `seed` (shared by all rows with shared_noise;
-        a list gives each row its own seed, as if it were sampled alone)."""
+        a list gives each row its own seed, as if it were sampled alone). blend(x) changes the latents
+        after each step (the consistency sampler: its clean estimates)."""
         if sampler == "consistency":
             if isinstance(seed, (list, tuple)):
                 g = [torch.Generator().manual_seed(int(s) + 1) for s in seed]
             else:
                 g = torch.Generator().manual_seed(int(seed) + 1)
             return consistency_sample(self.student_fn(text, auto, cfg, frame_mask), noise, self.schedule, steps,
-                                      generator=g, shared_noise=shared_noise, on_step=on_step)
+                                      generator=g, shared_noise=shared_noise, on_step=on_step,
+                                      on_clean=None if blend is None else (lambda t, x0: blend(x0)))
         return sample(self.model_fn(text, auto=auto, frame_mask=frame_mask), noise, self.schedule, sampler=sampler,
-                      steps=steps, cfg_scale=cfg, on_step=on_step)
+                      steps=steps, cfg_scale=cfg, on_step=on_step, blend=blend)
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, frames: int | None, texts: list[str], seed: int,
@@ -366,6 +368,7 @@ class Pipeline:
         spec = EditSpec.of(edit)
         prompt, target = self.check_edit(prompt, spec)
         text = self.sampler_text([prompt, target], sampler)
+        self.resolve_hold(spec, prompt, target, unsupported="guided control")
         plan = build_edit(text, steps, frames, spec, prompt, target, cfg_layout=sampler != "consistency")
         return text, plan, [prompt, target]
 
@@ -375,11 +378,27 @@ class Pipeline:
         source_prompt = self.check_prompt(source_prompt)
         return source_prompt, self.check_prompt(spec.target_prompt(source_prompt))
 
+    def resolve_hold(self, spec: EditSpec, source_prompt: str, target_prompt: str,
+                     unsupported: str | None = None) -> str | None:
+        """The body parts an edit holds to its source. "auto" holds the lower body when the edit re-weights
+        words of an unchanged prompt whose action the vocabulary knows as done in place (a re-weighted
+        manner word must not make a standing action walk off), and nothing otherwise. `unsupported`
+        names an editing path that does not blend latents: there "auto" holds nothing and a part is an error."""
+        if unsupported is not None:
+            if spec.hold not in (None, "auto"):
+                raise ValueError(f"hold={spec.hold!r} applies to Pipeline.edit; {unsupported} does not hold parts")
+            return None
+        if spec.hold != "auto":
+            return spec.hold
+        if spec.mode != "reweight" or target_prompt != source_prompt or self.prompt_check is None:
+            return None
+        return "lower" if self.prompt_check.in_place(source_prompt) else None
+
     def edit(self, source_prompt: str, target_prompt: str | None = None, mode: str = "swap", seed: int = 0,
              seconds: float | str | None = None, steps: int | None = None, cfg: float = 7.5, sampler: str = "ddim",
              tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
-             self_inject: float = DEFAULT_SELF_INJECT, progress: Progress | None = None, foot_lock: bool = True,
-             spec: EditSpec | None = None) -> EditResult:
+             self_inject: float = DEFAULT_SELF_INJECT, hold: str | None = "auto", progress: Progress | None = None,
+             foot_lock: bool = True, spec: EditSpec | None = None) -> EditResult:
         """Zero-shot edit by cross-attention modulation (SALAD Algorithm 1).
 
         mode: "swap" (target_prompt replaces words; the source's maps lead while the
@@ -387,12 +406,14 @@ class Pipeline:
         "refine" (target_prompt adds words; the aligned source maps are used while
         t >= tau * T, default 0 = every step), "reweight" (reweight={"word": s}, s in [-3, 3]) or "mirror" (mirror=
         "lower" | "upper" | "all"). reweight and mirror also compose with swap/refine.
+        hold: body parts ("lower": root and legs, "upper") whose latents follow the source at every step;
+        "auto" holds the lower body when re-weighting a prompt whose action is done in place (resolve_hold).
         Source and edited branches, with their CFG rows, run in one batched forward
         from the same noise. Returns both motions and both attention maps.
         The edit may instead come as spec=EditSpec(...) (salad.editing.spec), without those keywords.
         """
         spec = EditSpec.from_arguments(spec, mode=mode, target=target_prompt, tau=tau, reweight=reweight,
-                                       mirror=mirror, self_inject=self_inject)
+                                       mirror=mirror, self_inject=self_inject, hold=hold)
         source_prompt, target_prompt = self.check_edit(source_prompt, spec)
         frames = self.frames_for(seconds, source_prompt)
         steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
@@ -400,14 +421,15 @@ class Pipeline:
 
         text = self.sampler_text([source_prompt, target_prompt], sampler)
         plan = build_edit(text, steps, canvas, spec, source_prompt, target_prompt,
-                          cfg_layout=sampler != "consistency")
+                          cfg_layout=sampler != "consistency",
+                          hold=self.resolve_hold(spec, source_prompt, target_prompt))
         edit, store = plan.controller, plan.store
 
         noise = self.noise(1, canvas, seed).repeat(2, 1, 1, 1)        # the same z_T for both branches
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
         with self.network(sampler).controlled(edit):
             z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, shared_noise=True,
-                             on_step=on_step)
+                             on_step=on_step, blend=plan.blend)
         source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock,
                                      length=self.length_source(seconds))
         source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from salad.editing.spec import DEFAULT_SELF_INJECT, DEFAULT_TAU, EDIT_MODES, MIRROR_PARTS, EditSpec
+from salad.editing.spec import DEFAULT_SELF_INJECT, DEFAULT_TAU, EDIT_MODES, HOLD_PARTS, MIRROR_PARTS, EditSpec
 
 
 def test_defaults_and_mode_from_what_is_given():
@@ -14,6 +14,7 @@ def test_defaults_and_mode_from_what_is_given():
     assert EditSpec(reweight={"walks": 2}).mode == "reweight"
     spec = EditSpec(target="a person runs")
     assert spec.tau is None and spec.self_inject == 0.2 and spec.mirror is None and spec.weights is None
+    assert spec.hold == "auto" and EditSpec(mode="mirror", hold=None).hold is None
     assert spec.target_prompt("a person walks") == "a person runs"
     assert EditSpec(mode="mirror").target_prompt("a person walks") == "a person walks"
 
@@ -27,6 +28,8 @@ def test_no_part_means_all_only_when_mirroring():
 def test_mirror_parts_are_the_skeletons():
     from salad.motion import skeleton as sk
     assert MIRROR_PARTS == tuple(sk.PART_MIRROR_PAIRS)
+    assert HOLD_PARTS == tuple(sk.PART_GROUPS)
+    assert sorted(sum(sk.PART_GROUPS.values(), ())) == list(range(sk.BODY_PARTS.size))
 
 
 def test_reweight_is_kept_as_hashable_pairs():
@@ -34,8 +37,8 @@ def test_reweight_is_kept_as_hashable_pairs():
     assert spec.reweight == (("walks", 2.0), ("fast", -1.5)) and spec.weights == {"walks": 2.0, "fast": -1.5}
     assert spec == EditSpec(mode="reweight", reweight=(("walks", 2.0), ("fast", -1.5)))
     assert len({spec, EditSpec(mode="reweight", reweight=[("walks", 2.0), ("fast", -1.5)])}) == 1
-    assert spec.params(None) == {"mode": "reweight", "tau": None, "reweight": {"walks": 2.0, "fast": -1.5},
-                                 "mirror": None, "self_inject": 0.2}
+    assert spec.params(None, "lower") == {"mode": "reweight", "tau": None, "reweight": {"walks": 2.0, "fast": -1.5},
+                                          "mirror": None, "self_inject": 0.2, "hold": "lower"}
 
 
 @pytest.mark.parametrize("kwargs, message", [
@@ -53,6 +56,7 @@ def test_reweight_is_kept_as_hashable_pairs():
     (dict(mode="reweight", reweight={"walks": "high"}), "reweight must be a dict of word: scale"),
     (dict(mode="reweight", reweight="walks"), "reweight must be a dict of word: scale"),
     (dict(target=3), "target prompt must be a string"),
+    (dict(mode="mirror", hold="legs"), "hold must be one of auto, lower, upper or None"),
 ])
 def test_invalid_edits_say_what_is_wrong(kwargs, message):
     with pytest.raises(ValueError, match=message):

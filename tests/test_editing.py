@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from salad.editing.align import align_tokens, align_words
-from salad.editing.controllers import (AttentionEdit, KeepSource, Mirror, Refine, Reweight, WordSwap,
+from salad.editing.controllers import (AttentionEdit, HoldParts, KeepSource, Mirror, Refine, Reweight, WordSwap,
                                        cfg_rows)
 from salad.editing.store import AttentionStore, to_motion_rate
 from salad.models.attention import AttentionCall
@@ -164,6 +164,55 @@ def test_end_to_end_edits_with_a_trained_model(tiny_model, kw):
     np.testing.assert_allclose(res.source.joints, plain.joints, atol=5e-3)  # the source branch is untouched
     assert res.edited_attention.aggregate().shape[1:] == (7, 32)
     assert not np.allclose(res.source.joints, res.edited.joints)
+
+
+def test_held_parts_take_the_source_rows_latents():
+    x = torch.randn(2, 5, 7, 4)
+    out = HoldParts("lower")(x)
+    assert torch.equal(out[1, :, :3], x[0, :, :3]) and torch.equal(out[1, :, 3:], x[1, :, 3:])
+    assert torch.equal(out[0], x[0]) and not torch.equal(out, x)
+    up = HoldParts("upper")(x)
+    assert torch.equal(up[1, :, 3:], x[0, :, 3:]) and torch.equal(up[1, :, :3], x[1, :, :3])
+    with pytest.raises(ValueError, match="held parts"):
+        HoldParts("legs")
+
+
+@pytest.mark.parametrize("hold", ["lower", "upper", None])
+def test_edit_holds_the_asked_parts_of_the_source_latents(tiny_model, hold):
+    from salad.pipeline import load_pipeline
+    pipe = load_pipeline(tiny_model)
+    seen = {}
+    decode = pipe.decode
+
+    def keep_latents(z, *a, **kw):
+        seen["z"] = z.clone()
+        return decode(z, *a, **kw)
+    pipe.decode = keep_latents
+    res = pipe.edit("a person walks forward", mode="reweight", reweight={"walks": -2.0}, hold=hold, seed=1,
+                    seconds=1.6, steps=6)
+    z = seen["z"]
+    held = {"lower": [0, 1, 2], "upper": [3, 4, 5, 6], None: []}[hold]
+    free = [p for p in range(7) if p not in held]
+    assert torch.equal(z[1, :, held], z[0, :, held])
+    assert not torch.allclose(z[1, :, free], z[0, :, free])
+    assert res.params["hold"] == hold
+    plain = pipe.generate("a person walks forward", seconds=1.6, seed=1, steps=6)
+    np.testing.assert_allclose(res.source.joints, plain.joints, atol=5e-3)  # the source branch is untouched
+
+
+def test_holding_parts_is_refused_where_latents_are_not_blended(tiny_model):
+    from salad.pipeline import load_pipeline
+    pipe = load_pipeline(tiny_model)
+    targets = np.zeros((32, 22, 3), dtype=np.float32)
+    mask = np.zeros((32, 22), dtype=bool)
+    mask[-1, 0] = True
+    with pytest.raises(ValueError, match="guided control does not hold parts"):
+        pipe.control("a person walks forward", targets=targets, mask=mask, steps=2,
+                     edit={"mode": "reweight", "reweight": {"walks": 2.0}, "hold": "lower"})
+    # "auto" holds nothing there, and says so
+    res = pipe.control("a person walks forward", targets=targets, mask=mask, steps=2,
+                       edit={"mode": "reweight", "reweight": {"walks": 2.0}})
+    assert res.params["hold"] is None
 
 
 def test_swap_with_tau_at_the_start_is_target_only_generation(tiny_model):

@@ -220,6 +220,16 @@ def test_denoiser_init_from_refuses_another_vaes_latents(tiny_model, tiny_datase
                  "--vae", str(tmp_path / "other-vae" / "model"), "--init-from", str(tiny_model / "denoiser")]) == 2
     assert "another VAE" in capsys.readouterr().err
     assert not (tmp_path / "x" / "model").exists()
+    # asked for, the old denoiser is the start of one for the new latents, and the export names its new partner
+    from salad.models.io import load_denoiser, vae_checksum
+    cfg = denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=2)
+    assert main(["train", "denoiser", "--config", str(cfg), "--out-dir", str(tmp_path / "y"),
+                 "--vae", str(tmp_path / "other-vae" / "model"), "--init-from", str(tiny_model / "denoiser"),
+                 "--new-latents"]) == 0
+    _, doc = load_denoiser(tmp_path / "y" / "model")
+    assert doc["config"]["vae_checksum"] == vae_checksum(tmp_path / "other-vae" / "model")
+    assert main(["train", "vae", "--config", str(cfg), "--new-latents"]) == 2
+    assert "--new-latents applies to a denoiser" in capsys.readouterr().err
 
 
 def test_vae_override_only_applies_where_there_is_a_vae(tiny_dataset, tmp_path, capsys):

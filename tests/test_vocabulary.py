@@ -171,3 +171,36 @@ def test_the_vocabulary_keeps_each_examples_motion_length_for_a_length_prior(tin
     (model / VOCABULARY_FILE).write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="durations"):
         load_pipeline(model)
+
+
+def test_the_vocabulary_keeps_each_examples_root_speed_to_tell_actions_done_in_place(tiny_model, tiny_dataset,
+                                                                                       tmp_path):
+    import numpy as np
+
+    from salad.models.text import load_text_encoder
+    from salad.models.vocabulary import IN_PLACE_SPEED
+    from salad.pipeline import load_pipeline
+
+    vocab = build_vocabulary(tiny_dataset)
+    speeds = {}
+    for name in (tiny_dataset / "train.txt").read_text().split():
+        f = np.load(tiny_dataset / "new_joint_vecs" / f"{name}.npy")
+        joints_speed = np.linalg.norm(f[:, 1:3], axis=-1).mean() * 20
+        for line in (tiny_dataset / "texts" / f"{name}.txt").read_text().splitlines():
+            speeds.setdefault(line.split("#")[0], []).append(joints_speed)
+    assert len(vocab.speeds) == len(vocab.examples)
+    assert all(v == pytest.approx(np.median(speeds[c]), abs=1e-3) for (_, c), v in zip(vocab.examples, vocab.speeds))
+    model = tmp_path / "model"
+    shutil.copytree(tiny_model, model)
+    save_vocabulary(vocab, load_text_encoder("minilm"), model)
+    check = load_pipeline(model).prompt_check
+    for (_, caption), v in zip(vocab.examples, vocab.speeds):      # a caption is its own nearest example
+        assert check.in_place(caption, k=1) == (v < IN_PLACE_SPEED)
+    doc = json.loads((model / VOCABULARY_FILE).read_text())
+    del doc["speeds"]
+    (model / VOCABULARY_FILE).write_text(json.dumps(doc))
+    assert load_pipeline(model).prompt_check.in_place("a person walks forward") is None
+    doc["speeds"] = [-1.0] * len(doc["examples"])
+    (model / VOCABULARY_FILE).write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="speeds"):
+        load_pipeline(model)

@@ -10,6 +10,8 @@ def cmd_train(a) -> int:
         raise ValueError(f"--continue-from applies to the vae, the denoiser and consistency, not to {a.what}")
     if a.init_from and a.what not in ("vae", "vae-san", "denoiser", "consistency"):
         raise ValueError(f"--init-from applies to the vae, vae-san, the denoiser and consistency, not to {a.what}")
+    if a.new_latents and (a.what != "denoiser" or not (a.init_from or a.continue_from)):
+        raise ValueError("--new-latents applies to a denoiser started with --init-from or --continue-from")
     if a.teacher and a.what != "consistency":
         raise ValueError(f"--teacher applies to consistency distillation, not to {a.what}")
     if a.what == "vae":
@@ -22,6 +24,7 @@ def cmd_train(a) -> int:
         cfg = load_toml(DenoiserTrainConfig, a.config)
         apply_overrides(cfg, a)
         task, ema = DenoiserTask(cfg), cfg.ema_decay
+        task.new_latents = a.new_latents
     elif a.what == "consistency":
         from ..training.consistency_task import ConsistencyTask
         cfg = load_toml(ConsistencyTrainConfig, a.config)
@@ -72,4 +75,7 @@ def add_parser(sub) -> None:
                        help="train an exported model further: its weights and step count, so the LR schedule and "
                             "max_steps count on from its step; the fresh optimiser warms up again over warmup_steps. "
                             "consistency: an exported student of the same teacher")
+    t.add_argument("--new-latents", action="store_true",
+                   help="denoiser: let --init-from / --continue-from start from a denoiser trained on another VAE's "
+                        "latents (e.g. before the VAE's encoder was retrained); it then re-learns this VAE's latents")
     t.set_defaults(func=cmd_train)

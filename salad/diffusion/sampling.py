@@ -22,12 +22,13 @@ def cfg_combine(out: torch.Tensor, scale: float) -> torch.Tensor:
 
 @torch.no_grad()
 def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler: str = "ddim", steps: int = 50,
-           cfg_scale: float = 7.5, on_step: Callable[[int, int, torch.Tensor], None] | None = None) -> torch.Tensor:
+           cfg_scale: float = 7.5, on_step: Callable[[int, int, torch.Tensor], None] | None = None,
+           blend: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
     """Denoise `noise` (B, ...) to clean latents.
 
     `model` receives 2B rows (unconditional rows first, then conditional ones) so that
-    classifier-free guidance costs a single forward per step. `on_step(i, n, x)`
-    reports progress.
+    classifier-free guidance costs a single forward per step. `blend(x)` may change the
+    latents after each step (an edit's held body parts); `on_step(i, n, x)` reports progress.
     """
     sched = schedule.sampler(sampler, steps)
     x = noise
@@ -37,6 +38,8 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
         out = model(torch.cat((x, x), dim=0), tt)
         out = cfg_combine(out.float(), cfg_scale)
         x = sched.step(out, t, x).prev_sample
+        if blend is not None:
+            x = blend(x)
         if on_step is not None:
             on_step(i + 1, len(timesteps), x)
     return x

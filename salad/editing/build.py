@@ -15,22 +15,26 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from .align import align_tokens
-from .controllers import AttentionEdit, KeepSource, Mirror, Refine, Reweight, Rows, WordSwap, cfg_rows
+from .controllers import AttentionEdit, HoldParts, KeepSource, Mirror, Refine, Reweight, Rows, WordSwap, cfg_rows
 from .spec import DEFAULT_TAU, EditSpec
 from .store import AttentionStore
+
 
 @dataclass
 class EditPlan:
     controller: AttentionEdit
     store: AttentionStore
     params: dict = field(default_factory=dict)
+    # latent blending after each step (rows: source 0, edited 1 of the sampler's latent batch); None: none
+    blend: HoldParts | None = None
 
 
 def build_edit(text, steps: int, frames: int, spec: EditSpec, source_prompt: str, target_prompt: str,
-               cfg_layout: bool = True) -> EditPlan:
+               cfg_layout: bool = True, hold: str | None = None) -> EditPlan:
     """The controller (with an attention store on the two conditional rows) of `spec` for encoded
     `text` = ["", "", source_prompt, target_prompt] (cfg_layout) or [source_prompt, target_prompt]
-    and `steps` denoising steps; the prompts are the cleaned ones (Pipeline.check_edit)."""
+    and `steps` denoising steps; the prompts are the cleaned ones (Pipeline.check_edit) and `hold`
+    the parts held to the source, "auto" resolved (Pipeline.resolve_hold)."""
     rows = cfg_rows(1) if cfg_layout else Rows(source=slice(0, 1), target=slice(1, 2))
     src_row, tgt_row = rows.source.start, rows.target.start
     mode = spec.mode
@@ -52,7 +56,8 @@ def build_edit(text, steps: int, frames: int, spec: EditSpec, source_prompt: str
         transforms.append(Mirror(spec.mirror))
     store = AttentionStore(text, rows=slice(src_row, tgt_row + 1), frames=frames)
     controller = AttentionEdit(rows, steps, rule, transforms, self_inject=spec.self_inject, observers=[store])
-    return EditPlan(controller, store, spec.params(getattr(rule, "tau", None)))
+    return EditPlan(controller, store, spec.params(getattr(rule, "tau", None), hold),
+                    None if hold is None else HoldParts(hold))
 
 
 def step_follower(controller: AttentionEdit) -> Callable[[int], None]:

@@ -128,6 +128,28 @@ class Mirror:
         return m.index_select(2, perm).index_select(3, perm)  # skeletal: (b * frames, heads, J, J)
 
 
+# ---------------------------------------------------------------- latent blending
+
+
+class HoldParts:
+    """Prompt-to-Prompt's local blending at the level of body parts: after every denoising step the
+    edited branch takes the source branch's latents of the held parts, so those parts (and, with the
+    root part, the root's path) do what they do in the source while the attention edit changes the rest.
+    The maps cannot choose the parts themselves: a manner word attends to every part alike."""
+
+    def __init__(self, parts: str, source: int = 0, target: int = 1):
+        if parts not in sk.PART_GROUPS:
+            raise ValueError(f"held parts must be one of {', '.join(sk.PART_GROUPS)}, got {parts!r}")
+        self.parts, self.source, self.target = parts, source, target
+        self.index = torch.tensor(sk.PART_GROUPS[parts])
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:     # latents (rows, T/4, parts, D)
+        idx = self.index.to(x.device)
+        out = x.clone()
+        out[self.target, :, idx] = x[self.source, :, idx]
+        return out
+
+
 # ---------------------------------------------------------------- the controller
 
 

@@ -99,6 +99,7 @@ def edit_inverted(pipe, inv: Inversion, target_prompt: str | None = None, mode: 
     # (6.9 -> 0.3 m) and walk -> run became a 5 m/s dash, where the empty prompt gives a run.
     text = pipe.encode_text([_uncond_prompt(inv), "", source_prompt, target_prompt])
     frames = 4 * inv.latent_frames
+    pipe.resolve_hold(spec, source_prompt, target_prompt, unsupported="real-motion editing")
     plan = build_edit(text, inv.steps, frames, spec, source_prompt, target_prompt)
     controller, store, params = plan.controller, plan.store, plan.params
     start = time.perf_counter()
@@ -122,6 +123,7 @@ def edit_encoded_consistency(pipe, z0: torch.Tensor, spec: EditSpec, source_prom
     source_prompt, target_prompt = pipe.check_edit(source_prompt, spec)
     text = pipe.sampler_text([source_prompt, target_prompt], "consistency")
     frames = 4 * z0.shape[1]
+    pipe.resolve_hold(spec, source_prompt, target_prompt, unsupported="real-motion editing")
     plan = build_edit(text, steps, frames, spec, source_prompt, target_prompt, cfg_layout=False)
     g = torch.Generator().manual_seed(int(seed) + 1)
     first = int(pipe.schedule.sampler("consistency", steps).timesteps[0])

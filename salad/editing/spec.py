@@ -19,6 +19,11 @@ EDIT_MODES = ("swap", "refine", "reweight", "mirror")
 # The keys of salad.motion.skeleton.PART_MIRROR_PAIRS, spelled out so that this module (and the
 # studio's settings) load without torch; tests keep the two equal.
 MIRROR_PARTS = ("lower", "upper", "all")
+# Body parts whose latents the edited branch takes from the source at every step (Prompt-to-Prompt's
+# local blending, at the skeleton's part level): "lower" = root and legs, "upper" = spine, arms and head.
+# "auto" holds the lower body when a re-weighting edit's prompt asks for an action done in place.
+HOLD_PARTS = ("lower", "upper")
+HOLD_CHOICES = ("auto",) + HOLD_PARTS
 # Share of T during which the source's maps lead: swap's early steps fix the layout of the
 # motion, refine keeps the aligned source maps throughout.
 DEFAULT_TAU = {"swap": 0.8, "refine": 0.0}
@@ -45,6 +50,8 @@ class EditSpec:
     reweight: {word of the edited prompt: scale in [-MAX_REWEIGHT, MAX_REWEIGHT]}, kept as pairs.
     mirror: "lower", "upper" or "all" (mirror mode without a part mirrors all).
     self_inject: share of the steps with the source's self-attention.
+    hold: body parts that follow the source throughout ("lower", "upper"; None: none); "auto" holds
+    "lower" in a re-weighting of an unchanged prompt whose action is done in place (Pipeline.resolve_hold).
     """
 
     mode: str | None = None
@@ -53,6 +60,7 @@ class EditSpec:
     reweight: tuple[tuple[str, float], ...] = ()
     mirror: str | None = None
     self_inject: float = DEFAULT_SELF_INJECT
+    hold: str | None = "auto"
 
     def __post_init__(self):
         weights = self.reweight
@@ -90,6 +98,8 @@ class EditSpec:
             mirror = "all"
         if mirror is not None and mirror not in MIRROR_PARTS:
             raise ValueError(f"mirror part must be one of {', '.join(MIRROR_PARTS)}, got {mirror!r}")
+        if self.hold is not None and self.hold not in HOLD_CHOICES:
+            raise ValueError(f"hold must be one of {', '.join(HOLD_CHOICES)} or None, got {self.hold!r}")
         object.__setattr__(self, "mode", mode)
         object.__setattr__(self, "mirror", mirror)
         if self.tau is not None:
@@ -117,7 +127,7 @@ class EditSpec:
         (Pipeline.edit's mode=, tau=, ...); settings left at their defaults do not count."""
         if spec is None:
             return cls(**settings)
-        defaults = {"mode": "swap", "self_inject": DEFAULT_SELF_INJECT}
+        defaults = {"mode": "swap", "self_inject": DEFAULT_SELF_INJECT, "hold": "auto"}
         given = sorted(k for k, v in settings.items() if v != defaults.get(k))
         if given:
             raise ValueError(f"give the edit either as an EditSpec or as keyword arguments, not both "
@@ -133,10 +143,10 @@ class EditSpec:
         """The edited branch's prompt."""
         return source_prompt if self.target is None else self.target
 
-    def params(self, tau: float | None) -> dict:
-        """The settings as an EditResult records them (tau: the one the rule used)."""
+    def params(self, tau: float | None, hold: str | None) -> dict:
+        """The settings as an EditResult records them (tau: the one the rule used; hold: the parts held)."""
         return {"mode": self.mode, "tau": tau, "reweight": self.weights, "mirror": self.mirror,
-                "self_inject": self.self_inject}
+                "self_inject": self.self_inject, "hold": hold}
 
 
 @dataclass

@@ -34,6 +34,10 @@ EXAMPLES_PER_ACTION = 24
 # example captions whose motions' lengths the length prior takes the median of: a third of an action's
 # examples, so that it follows the prompt's manner words within the action
 LENGTH_NEIGHBOURS = 8
+# Root speed (m/s) below which the motions of the example captions nearest a prompt count as done in
+# place. Per-caption medians in the Bandai training split: raises, waves, bows, calls and gestures
+# 0.01-0.20; actions that step or use the legs (punch, dance, kick, slash) 0.22-0.45; walks 0.46 and up.
+IN_PLACE_SPEED = 0.25
 
 # A prompt whose best cosine similarity (mean-pooled text-encoder features) to the training caption
 # sample is below this asks for something the model has not learned. With MiniLM on the Bandai
@@ -65,10 +69,14 @@ class Vocabulary:
     # seconds of the motions each example caption describes (their median), parallel to examples; empty in
     # vocabularies written before lengths were kept
     durations: tuple[float, ...] = ()
+    # mean horizontal root speed (m/s) of those motions (their median), parallel to examples; empty in
+    # vocabularies written before speeds were kept
+    speeds: tuple[float, ...] = ()
 
     def to_json(self) -> dict:
         return {"source": self.source, "actions": self.actions, "examples": [list(e) for e in self.examples],
-                "styles": self.styles, "words": sorted(self.words), "durations": list(self.durations)}
+                "styles": self.styles, "words": sorted(self.words), "durations": list(self.durations),
+                "speeds": list(self.speeds)}
 
     @classmethod
     def from_json(cls, doc: dict, where: str) -> "Vocabulary":
@@ -76,13 +84,18 @@ class Vocabulary:
             vocab = cls(actions=dict(doc["actions"]), examples=[(str(a), str(c)) for a, c in doc["examples"]],
                         styles=[str(s) for s in doc["styles"]], words=frozenset(doc["words"]),
                         source=str(doc.get("source", "")),
-                        durations=tuple(float(d) for d in doc.get("durations", ())))
+                        durations=tuple(float(d) for d in doc.get("durations", ())),
+                        speeds=tuple(float(v) for v in doc.get("speeds", ())))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{where}: not a vocabulary file ({e})") from None
         if vocab.durations and (len(vocab.durations) != len(vocab.examples)
                                 or not all(math.isfinite(d) and d > 0 for d in vocab.durations)):
             raise ValueError(f"{where}: {len(vocab.durations)} durations for {len(vocab.examples)} examples, or one "
                              "that is not a positive number of seconds")
+        if vocab.speeds and (len(vocab.speeds) != len(vocab.examples)
+                             or not all(math.isfinite(v) and v >= 0 for v in vocab.speeds)):
+            raise ValueError(f"{where}: {len(vocab.speeds)} speeds for {len(vocab.examples)} examples, or one "
+                             "that is not a speed in m/s")
         return vocab
 
 
@@ -98,6 +111,7 @@ def build_vocabulary(root: str | Path, split: str = "train", per_action: int = E
         labels = {}
     by_action: dict[str, list[str]] = {}
     seconds: dict[tuple[str, str], list[float]] = {}     # (action, caption) -> the lengths of its motions
+    speeds: dict[tuple[str, str], list[float]] = {}      # ... and their mean root speeds
     styles: set[str] = set()
     words: set[str] = set()
     for name in names:
@@ -105,7 +119,10 @@ def build_vocabulary(root: str | Path, split: str = "train", per_action: int = E
         motion = root / "new_joint_vecs" / f"{name}.npy"
         if not path.is_file() or not motion.is_file():
             continue
-        n = len(np.load(motion, mmap_mode="r"))
+        features = np.load(motion, mmap_mode="r")
+        n = len(features)
+        # channels 1-2: the root's horizontal velocity per frame
+        speed = float(np.linalg.norm(np.asarray(features[:, 1:3], dtype=np.float64), axis=-1).mean() * FPS)
         captions = [c.text for c in read_captions(path)]
         for caption in captions:
             words.update(split_words(caption))
@@ -117,7 +134,9 @@ def build_vocabulary(root: str | Path, split: str = "train", per_action: int = E
             for caption in captions:
                 by_action.setdefault(caption, []).append(caption)
         for caption in captions:
-            seconds.setdefault((lab.content if lab is not None else caption, caption), []).append(n / FPS)
+            key = (lab.content if lab is not None else caption, caption)
+            seconds.setdefault(key, []).append(n / FPS)
+            speeds.setdefault(key, []).append(speed)
     if not by_action:
         raise ValueError(f"{root}: split {split!r} has no captioned motions to take a vocabulary from")
     rng = np.random.default_rng(seed)
@@ -130,7 +149,9 @@ def build_vocabulary(root: str | Path, split: str = "train", per_action: int = E
                for a in sorted(by_action)}
     manner = sorted({adv for s in styles for adv in STYLE_PHRASES.get(s, ((), ()))[0] if adv and " " not in adv})
     durations = tuple(round(float(np.median(seconds[e])), 2) for e in examples)
-    return Vocabulary(actions, examples, manner, frozenset(words), source=f"{root.name}/{split}", durations=durations)
+    speed = tuple(round(float(np.median(speeds[e])), 3) for e in examples)
+    return Vocabulary(actions, examples, manner, frozenset(words), source=f"{root.name}/{split}", durations=durations,
+                      speeds=speed)
 
 
 def save_vocabulary(vocab: Vocabulary, encoder: TextEncoder, out: str | Path) -> Path:
@@ -213,6 +234,15 @@ class PromptCheck:
         q = self._query(prompt)
         nearest = torch.topk(self.features @ q, min(k, len(self.vocab.durations))).indices.tolist()
         return float(np.median([self.vocab.durations[i] for i in nearest]))
+
+    def in_place(self, prompt: str, k: int = LENGTH_NEIGHBOURS) -> bool | None:
+        """Whether `prompt` asks for an action done in place: the median root speed of the motions of the
+        `k` example captions nearest to it is below IN_PLACE_SPEED (None when the vocabulary keeps no speeds)."""
+        if not self.vocab.speeds:
+            return None
+        q = self._query(prompt)
+        nearest = torch.topk(self.features @ q, min(k, len(self.vocab.speeds))).indices.tolist()
+        return float(np.median([self.vocab.speeds[i] for i in nearest])) < IN_PLACE_SPEED
 
     def unknown_words(self, prompt: str) -> list[str]:
         """Words of `prompt` no training caption uses (numbers and function words aside)."""

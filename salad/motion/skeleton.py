@@ -122,6 +122,8 @@ POOL_GROUPS = (POOL_22_TO_12, POOL_12_TO_7)
 
 # Body-part groups used by attention mirroring: lower = legs, upper = arms.
 PART_MIRROR_PAIRS = {"lower": ((1, 2),), "upper": ((4, 5),), "all": ((1, 2), (4, 5))}
+# BODY_PARTS of each half of the body; the root part carries the root's path.
+PART_GROUPS = {"lower": (0, 1, 2), "upper": (3, 4, 5, 6)}
 
 
 def pooling_matrix(groups, n_fine: int) -> np.ndarray:

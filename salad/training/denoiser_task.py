@@ -76,6 +76,9 @@ class DenoiserTraining(nn.Module):
 
 class DenoiserTask:
     kind = "denoiser"
+    # --new-latents: a warm start may come from a denoiser of another latent space (its VAE's
+    # encoder since retrained); the weights are a start, not a partner, so no identity check
+    new_latents = False
 
     def __init__(self, cfg: DenoiserTrainConfig, show_progress: bool = True):
         self.cfg = cfg
@@ -255,9 +258,10 @@ class DenoiserTask:
         # Same-shaped weights from another latent space or text encoder would load fine and
         # train into nonsense, so the partners are checked by identity, not by shape.
         trained_on = doc["config"].get("vae_checksum")
-        if trained_on and trained_on not in vae_latent_checksums(self.cfg.vae):
+        if trained_on and trained_on not in vae_latent_checksums(self.cfg.vae) and not self.new_latents:
             raise CheckpointError(f"{path} was trained on another VAE's latents than {self.cfg.vae}'s; "
-                                  "pass the VAE it was trained with (--vae)")
+                                  "pass the VAE it was trained with (--vae), or --new-latents to re-train it "
+                                  "onto this VAE's latent space")
         theirs, mine = doc["config"].get("text_encoder", {}), self.text_spec
         if theirs.get("name") != mine.get("name"):
             raise CheckpointError(f"{path} was trained with the {theirs.get('name')} text encoder, this config "
