@@ -132,8 +132,8 @@ def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads:
                 return shown(client.predict(prompt, True, 4.0, seed, steps, CFG, sampler, True, api_name="/generate"))
 
             def edit(mode: str, target: str, mirror: str, seed: int):
-                return shown(client.predict(PROMPTS[0], mode, target, None, "", 2.0, mirror, 0.2, True, 4.0, seed,
-                                            steps, CFG, sampler, True, api_name="/edit"))
+                return shown(client.predict(PROMPTS[0], mode, target, None, "", 2.0, mirror, 0.2, "auto", True, 4.0,
+                                            seed, steps, CFG, sampler, True, api_name="/edit"))
 
             guided = sampler if sampler in ("ddim", "consistency") else "ddim"     # no DPM-Solver++ guidance
             path_seconds = min(CONTROL_SECONDS, float(studio_app.studio.pipe.max_seconds))

@@ -21,8 +21,8 @@ class Result:
 
     kind "generate": `motion` with its attention; "edit": `motion` is the edited motion and
     `source` the source one; "control": `motion` and the `signal` it was guided by; "real":
-    `motion` is the edited motion, `source` the reconstruction of the `given` input and
-    `params` the edit's settings and timings."""
+    `motion` is the edited motion, `source` the reconstruction of the `given` input; an edit's
+    `params` are its settings as salad resolved them and its timings."""
 
     request: Any                        # GenerateRequest | EditRequest | ControlRequest | RealEditRequest
     motion: Any                         # salad Motion
@@ -33,7 +33,7 @@ class Result:
     source: Any = None                  # edit: the source Motion
     signal: Any = None                  # control: the ControlSignal
     given: Any = None                   # real: the input (app.real_input.RealInput)
-    params: dict[str, Any] = field(default_factory=dict)   # real: salad's EditResult.params
+    params: dict[str, Any] = field(default_factory=dict)   # edit, real: salad's EditResult.params
     id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
 
     def __post_init__(self):

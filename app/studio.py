@@ -312,7 +312,7 @@ class Studio:
         saved = [file_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
                  file_writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
         # An unchanged source (same prompt, seed, length, sampling) reuses its rendered panel.
-        result = Result(req, res.edited, folder, {}, timings, kind="edit", source=res.source)
+        result = Result(req, res.edited, folder, {}, timings, kind="edit", source=res.source, params=res.params)
         return self._finish(session, result, saved, progress)
 
     def edit_word_map(self, result: Result) -> list[int]:

@@ -7,10 +7,11 @@ import math
 from dataclasses import dataclass
 from numbers import Real
 from pathlib import Path
+from typing import ClassVar
 
 from salad.motion.control import lower_body_signal
 from salad.motion.representation import FPS
-from salad.editing.spec import EDIT_MODES, EditSpec
+from salad.editing.spec import EDIT_MODES, HOLD_CHOICES, EditSpec
 from salad.pipeline import MIN_AUTO_FRAMES
 
 from . import controls
@@ -165,7 +166,7 @@ class _Edit:
     @property
     def spec(self) -> EditSpec:
         return EditSpec(mode=self.mode, target=self.target, tau=self.tau, reweight=self.reweight, mirror=self.mirror,
-                        self_inject=self.self_inject)
+                        self_inject=self.self_inject, hold=self.hold)
 
 
 @dataclass(frozen=True)
@@ -177,6 +178,7 @@ class EditRequest(_Edit):
     reweight: tuple[tuple[str, float], ...]   # (word of the edited prompt, scale s)
     mirror: str | None              # lower | upper | all
     self_inject: float
+    hold: str | None                # body parts held to the source: auto | lower | upper; None: none
     seconds: float | None
     seed: int
     steps: int
@@ -195,11 +197,12 @@ def _choice(name: str, value, options) -> str:
     return value
 
 
-def parse_edit(pipe, source, mode, target, tau, reweight_word, reweight_scale, mirror, self_inject,
+def parse_edit(pipe, source, mode, target, tau, reweight_word, reweight_scale, mirror, self_inject, hold,
                auto_length, seconds, seed, steps, cfg, sampler, foot_lock=True) -> EditRequest:
     """Validate the Edit panel. swap and refine need a target prompt (swap: as many words as
     the source); re-weighting names a word of the edited prompt (required in reweight mode,
-    optional with swap/refine); mirroring names a body half (all of it when mirror mode names none)."""
+    optional with swap/refine); mirroring names a body half (all of it when mirror mode names none);
+    `hold` names the body half held to the source, "auto" or "none"."""
     mode = _choice("edit mode", mode, EDIT_MODES)
     src = check_text(pipe, source, "source prompt")
     tgt, t = None, None
@@ -230,13 +233,14 @@ def parse_edit(pipe, source, mode, target, tau, reweight_word, reweight_scale, m
     elif mode == "reweight":
         raise ValueError(f"choose the word to re-weight, one of: {', '.join(words)}")
     half = None if mirror in (None, "", "none") else _choice("mirror", mirror, MIRROR_PARTS)
+    held = None if hold in (None, "", "none") else _choice("hold to the source", hold, HOLD_CHOICES + ("none",))
     spec = EditSpec(mode=mode, target=tgt, tau=t, reweight=weights, mirror=half,
-                    self_inject=_number("self-attention injection", self_inject, 0.0, 1.0))
+                    self_inject=_number("self-attention injection", self_inject, 0.0, 1.0), hold=held)
     duration = _duration(pipe, auto_length, seconds)
     seed, n_steps, scale, sampler = _sampling(pipe, seed, steps, cfg, sampler)
     return EditRequest(source=src, target=tgt, mode=mode, tau=t, reweight=spec.reweight, mirror=spec.mirror,
-                       self_inject=spec.self_inject, seconds=duration, seed=seed, steps=n_steps, cfg=scale,
-                       sampler=sampler, foot_lock=_flag("foot lock", foot_lock))
+                       self_inject=spec.self_inject, hold=spec.hold, seconds=duration, seed=seed, steps=n_steps,
+                       cfg=scale, sampler=sampler, foot_lock=_flag("foot lock", foot_lock))
 
 
 # ---------------------------------------------------------------- guided control
@@ -332,6 +336,7 @@ class RealEditRequest(_Edit):
     reweight: tuple[tuple[str, float], ...]
     mirror: str | None
     self_inject: float
+    hold: ClassVar[None] = None     # real-motion editing holds no parts
     inversion: str | None           # a method of salad.diffusion.inversion; None with the student, which needs none
     steps: int
     cfg: float
@@ -368,7 +373,7 @@ def parse_real_edit(pipe, upload, clip, source, mode, target, reweight_word, rew
                          + (" or pick a test clip" if clips is not None else ""))
     student = sampler == "consistency"
     method = None if student else _choice("inversion", inversion, METHODS)
-    ed = parse_edit(pipe, source, mode, target, None, reweight_word, reweight_scale, mirror, DEFAULT_SELF_INJECT,
+    ed = parse_edit(pipe, source, mode, target, None, reweight_word, reweight_scale, mirror, DEFAULT_SELF_INJECT, None,
                     True, None, seed if student else 0, steps, cfg, sampler, foot_lock)
     req = RealEditRequest(input_name=motion.name, input_kind=motion.kind, input_digest=digest, source=ed.source, target=ed.target,
                           mode=ed.mode, tau=ed.tau, reweight=ed.reweight, mirror=ed.mirror, self_inject=ed.self_inject,

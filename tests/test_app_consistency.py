@@ -67,8 +67,8 @@ def generate(client, prompt="a person walks forward", seconds=1.2, seed=0, steps
 
 
 def edit(client, seed=0, steps=STEPS, sampler="consistency"):
-    return client.predict(SOURCE, "swap", TARGET, None, "", 2.0, "none", 0.2, False, 1.2, seed, steps, CFG, sampler,
-                          True, api_name="/edit")
+    return client.predict(SOURCE, "swap", TARGET, None, "", 2.0, "none", 0.2, "auto", False, 1.2, seed, steps, CFG,
+                          sampler, True, api_name="/edit")
 
 
 def control(client, seed=0, steps=STEPS, sampler="consistency"):

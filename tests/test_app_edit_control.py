@@ -44,9 +44,9 @@ def server(pipe, examples_dir, tmp_path_factory):
 
 
 def edit(client, source=SOURCE, mode="swap", target=TARGET, tau=None, word="", scale=2.0, mirror="none",
-         self_inject=0.2, seconds=1.2, seed=0, steps=STEPS, cfg=7.5, sampler="ddim"):
-    return client.predict(source, mode, target, tau, word, scale, mirror, self_inject, seconds is None, seconds, seed,
-                          steps, cfg, sampler, api_name="/edit")
+         self_inject=0.2, hold="auto", seconds=1.2, seed=0, steps=STEPS, cfg=7.5, sampler="ddim"):
+    return client.predict(source, mode, target, tau, word, scale, mirror, self_inject, hold, seconds is None, seconds,
+                          seed, steps, cfg, sampler, api_name="/edit")
 
 
 def control(client, prompt="a person walks forward", task="path", preset="circle", seconds=1.2, speed=1.0,
@@ -72,7 +72,7 @@ def test_word_swap_gives_a_side_by_side_video_both_maps_and_files(client, pipe):
     assert Path(video).name.endswith("_side-by-side_preview.mp4"), "the preview first"
     assert len(files) == 8 and not any(f.endswith(".mp4") for f in files), "no video among the downloads yet"
     assert "Word swap" in summary and "“right” → “left”" in summary and "80%" in summary
-    assert "Most changed" in summary
+    assert "Most changed" in summary and "held to the source" not in summary, "auto holds nothing in a swap"
     words = [c[0] for c in word["choices"]]
     assert words == TARGET.split() and word["value"] == words.index("left")
     left, right = plot(source_map), plot(edited_map)
@@ -115,6 +115,8 @@ def test_word_swap_gives_a_side_by_side_video_both_maps_and_files(client, pipe):
      ["Mirrored", "the arms"]),
     (dict(mode="swap", tau=0.5, word="left", scale=2.5, mirror="lower"),
      ["Word swap", "50%", "re-weighted", "“left” × 2.5", "mirrored", "the legs"]),
+    (dict(mode="reweight", target="", word="happily", scale=2.5, hold="lower"),
+     ["Re-weighted", "lower body (root path and legs) held to the source"]),
 ])
 def test_every_edit_mode_and_their_compositions(client, kwargs, expect):
     video, summary, word, source_map, edited_map, files = edit(client, **kwargs)
@@ -164,6 +166,7 @@ def test_an_identical_edit_is_answered_without_sampling_again(client, server):
     (dict(tau=1.5), "tau must be between 0 and 1"),
     (dict(mirror="middle"), "mirror must be one of lower, upper, all"),
     (dict(self_inject=-0.1), "self-attention injection must be between 0 and 1"),
+    (dict(hold="legs"), "hold to the source must be one of auto, lower, upper, none, got 'legs'"),
     (dict(steps=0), "steps must be between 1 and 200"),
     (dict(seconds=60.0), "seconds must be between"),
     (dict(target="a person waves their left 🖐 happily"), "cannot read “🖐” in the target prompt"),
@@ -356,13 +359,16 @@ def test_uploads_are_checked_before_they_are_read(tmp_path):
 
 def test_edit_and_control_validation_directly(pipe, tmp_path):
     req = parse_edit(pipe, "  a person walks ", "refine", "a person walks slowly", None, "SLOWLY", "1.5", "none",
-                     0.1, True, None, 1, 3, 5, "dpm")
+                     0.1, "upper", True, None, 1, 3, 5, "dpm")
     assert req == EditRequest("a person walks", "a person walks slowly", "refine", 0.0, (("slowly", 1.5),), None, 0.1,
-                              None, 1, 3, 5.0, "dpm")
-    assert parse_edit(pipe, SOURCE, "swap", TARGET, None, "", 1, "none", 0.2, True, None, 0, 3, 5, "ddim").tau == 0.8
-    mirror = parse_edit(pipe, SOURCE, "mirror", "ignored", 0.3, "", 1, "all", 0.2, False, 1.2, 0, 3, 5, "ddim")
-    assert (mirror.target, mirror.tau, mirror.mirror, mirror.seconds) == (None, None, "all", 1.2)
-    assert parse_edit(pipe, SOURCE, "mirror", "", None, "", 1, "none", 0.2, True, None, 0, 3, 5, "ddim").mirror == "all"
+                              "upper", None, 1, 3, 5.0, "dpm")
+    assert req.spec.hold == "upper"
+    swap = parse_edit(pipe, SOURCE, "swap", TARGET, None, "", 1, "none", 0.2, "auto", True, None, 0, 3, 5, "ddim")
+    assert (swap.tau, swap.hold) == (0.8, "auto")
+    mirror = parse_edit(pipe, SOURCE, "mirror", "ignored", 0.3, "", 1, "all", 0.2, "none", False, 1.2, 0, 3, 5, "ddim")
+    assert (mirror.target, mirror.tau, mirror.mirror, mirror.hold, mirror.seconds) == (None, None, "all", None, 1.2)
+    assert parse_edit(pipe, SOURCE, "mirror", "", None, "", 1, "none", 0.2, "auto", True, None, 0, 3, 5,
+                      "ddim").mirror == "all"
     walk = synthetic_walk(24)
     base = Result(None, type("M", (), {"joints": walk})(), tmp_path)
     req, sig = parse_control(pipe, "a person walks", "upper", None, None, None, None, None, None, 2, 0, 3, 5, base=base)
@@ -395,10 +401,10 @@ def test_sessions_reuse_identical_requests_per_kind(pipe, tmp_path):
     studio = Studio(pipe, ws)
     try:
         session = studio.session(None, "client")
-        req = parse_edit(pipe, SOURCE, "mirror", "", None, "", 1, "upper", 0.2, False, 0.8, 0, 2, 5, "ddim")
+        req = parse_edit(pipe, SOURCE, "mirror", "", None, "", 1, "upper", 0.2, "auto", False, 0.8, 0, 2, 5, "ddim")
         first = studio.edit(session, req, lambda *a: None)
-        other = studio.edit(session, parse_edit(pipe, SOURCE, "mirror", "", None, "", 1, "lower", 0.2, False, 0.8, 0,
-                                                2, 5, "ddim"), lambda *a: None)
+        other = studio.edit(session, parse_edit(pipe, SOURCE, "mirror", "", None, "", 1, "lower", 0.2, "auto", False,
+                                                0.8, 0, 2, 5, "ddim"), lambda *a: None)
         assert studio.edit(session, req) is first and session.latest("edit") is first and first.reused == 1
         assert session.current is None, "edits are not generations"
         first.files["preview"].unlink()               # a pruned file: sampled again
@@ -424,7 +430,7 @@ def test_edits_and_guided_motions_preview_first_and_render_in_full_once(pipe, tm
     studio = Studio(pipe, ws)
     try:
         session = studio.session(None, "client")
-        req = parse_edit(pipe, SOURCE, "mirror", "", None, "", 1, "upper", 0.2, False, 0.8, 0, 2, 5, "ddim")
+        req = parse_edit(pipe, SOURCE, "mirror", "", None, "", 1, "upper", 0.2, "auto", False, 0.8, 0, 2, 5, "ddim")
         edited = studio.edit(session, req)
         assert calls == [("render_side_by_side", edited.files["preview"].name, False)]
         assert edited.files["preview"].name.endswith("_side-by-side_preview.mp4")

@@ -251,3 +251,21 @@ def test_cli_edit_writes_npy_bvh_and_side_by_side(tiny_model, tmp_path):
         assert (tmp_path / "e" / f).stat().st_size > 0
     frames = iio.imread(tmp_path / "e" / "side_by_side.mp4", plugin="FFMPEG")
     assert frames.shape[0] == 24 and frames.shape[2] > frames.shape[1]
+
+
+def test_cli_edit_holds_the_chosen_parts_and_refuses_others(tiny_model, tmp_path, capsys):
+    from salad.cli import build_parser, main
+    argv = ["edit", "a person waves their left hand", "--mode", "reweight", "--reweight", "waves=2",
+            "--model", str(tiny_model), "--seconds", "1.2", "--steps", "2", "-o", str(tmp_path / "e")]
+    assert main(argv + ["--hold", "lower"]) == 0
+    assert "held the lower body to the source" in capsys.readouterr().out
+    assert (tmp_path / "e" / "edited.npy").stat().st_size > 0
+    parser = build_parser()
+    assert parser.parse_args(argv).hold == "auto" and parser.parse_args(argv + ["--hold", "none"]).hold == "none"
+    with pytest.raises(SystemExit) as exit_:
+        parser.parse_args(argv + ["--hold", "legs"])
+    assert exit_.value.code == 2 and "invalid choice: 'legs'" in capsys.readouterr().err
+    # real-motion editing holds no parts: edit-real has no --hold
+    with pytest.raises(SystemExit) as exit_:
+        parser.parse_args(["edit-real", "in.bvh", "--source", "a person walks", "-o", "a.bvh", "--hold", "lower"])
+    assert exit_.value.code == 2 and "unrecognized arguments: --hold lower" in capsys.readouterr().err

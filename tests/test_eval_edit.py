@@ -263,6 +263,9 @@ def test_benchmark_end_to_end_on_the_tiny_model(tiny_model, pipe, classifier, tm
     assert set(frames.values()) == {pipe.frames_for(min(4.0, pipe.max_seconds))}   # one fixed length per case
     assert res["time_s"]["edit_calls"] == 8 + 10 + 5 + 3 * len(DEFAULT_SCALES)
     assert res["settings"]["suite"] == "tuned"
+    # the tiny model ships no vocabulary, so "auto" holds nothing; the report says so per case
+    assert res["settings"]["held"] == {c.name: None for c in cases}
+    assert "| Held to the source |" in report
     for heading in ("## Success and preservation", "## Per case", "## Attention re-weighting", "| mirror (all) |",
                     "Root path distance (m) against the source per scale"):
         assert heading in report

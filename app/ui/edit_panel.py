@@ -31,6 +31,9 @@ MODE_HELP = {
 }
 MIRROR_CHOICES = [("no mirroring", "none"), ("legs (lower)", "lower"), ("arms (upper)", "upper"),
                   ("arms and legs (all)", "all")]
+HOLD_CHOICES = [("auto", "auto"), ("lower body", "lower"), ("upper body", "upper"), ("nothing", "none")]
+HOLD_INFO = ("the held body half moves as in the source while the edit changes the rest (lower: the legs and the "
+             "path); auto keeps the legs and the path of a standing action when re-weighting a word")
 EXAMPLE_EDITS = [
     ["a person waves their right hand happily", "swap", "a person waves their left hand happily"],
     ["a person walks forward", "refine", "an exhausted person walks forward slowly"],
@@ -50,6 +53,7 @@ class EditPanel:
     reweight_scale: gr.Slider
     mirror: gr.Radio
     self_inject: gr.Slider
+    hold: gr.Dropdown
     auto_length: gr.Checkbox
     seconds: gr.Slider
     seed: gr.Number
@@ -70,8 +74,8 @@ class EditPanel:
     @property
     def inputs(self) -> list:
         return [self.source, self.mode, self.target, self.tau, self.reweight_word, self.reweight_scale, self.mirror,
-                self.self_inject, self.auto_length, self.seconds, self.seed, self.steps, self.cfg, self.sampler,
-                self.foot_lock]
+                self.self_inject, self.hold, self.auto_length, self.seconds, self.seed, self.steps, self.cfg,
+                self.sampler, self.foot_lock]
 
 
 def build_edit_panel(pipe, samplers=("ddim", "dpm"), sampler: str = "ddim") -> EditPanel:
@@ -103,6 +107,8 @@ def build_edit_panel(pipe, samplers=("ddim", "dpm"), sampler: str = "ddim") -> E
             self_inject = gr.Slider(0.0, 1.0, value=DEFAULT_SELF_INJECT, step=0.05, elem_id="edit-self-inject",
                                     label="Self-attention injection: share of the first steps that reuse the "
                                           "source's self-attention", info="higher keeps the timing and pose closer")
+            hold = gr.Dropdown(HOLD_CHOICES, value="auto", label="Hold to the source", info=HOLD_INFO,
+                               elem_id="edit-hold")
             with gr.Accordion("Sampling", open=False):
                 with gr.Row():
                     auto_length = gr.Checkbox(value=True, label="Automatic length", scale=1, min_width=140)
@@ -136,5 +142,5 @@ def build_edit_panel(pipe, samplers=("ddim", "dpm"), sampler: str = "ddim") -> E
                                       "attention maps (NPZ, PNG)", file_count="multiple", interactive=False,
                                 elem_id="edit-downloads")
     return EditPanel(source, mode, mode_help, target, tau, reweight_word, reweight_scale, mirror, self_inject,
-                     auto_length, seconds, seed, steps, cfg, sampler_radio, foot_lock, button, video, summary, word,
-                     source_heatmap, edited_heatmap, downloads, bvh_units, files_status)
+                     hold, auto_length, seconds, seed, steps, cfg, sampler_radio, foot_lock, button, video, summary,
+                     word, source_heatmap, edited_heatmap, downloads, bvh_units, files_status)

@@ -197,10 +197,10 @@ class Handlers:
         self.studio.session(state, request.session_hash)
         return result
 
-    def edit(self, source, mode, target, tau, reweight_word, reweight_scale, mirror, self_inject, auto_length,
+    def edit(self, source, mode, target, tau, reweight_word, reweight_scale, mirror, self_inject, hold, auto_length,
              seconds, seed, steps, cfg, sampler, foot_lock, state, request: gr.Request, progress=gr.Progress()):
         req = parse_edit(self.studio.pipe, source, mode, target, tau, reweight_word, reweight_scale, mirror,
-                         self_inject, auto_length, seconds, seed, steps, cfg, sampler, foot_lock)
+                         self_inject, hold, auto_length, seconds, seed, steps, cfg, sampler, foot_lock)
         session = self.studio.session(state, request.session_hash)
         result = self.studio.edit(session, req, _gr_progress(progress))
         focus = self.studio.edit_focus_word(result)

@@ -8,6 +8,7 @@ from ..session import Result
 
 MODE_NAMES = {"swap": "Word swap", "refine": "Refinement", "reweight": "Re-weighting", "mirror": "Mirroring"}
 MIRROR_NAMES = {"lower": "the legs", "upper": "the arms", "all": "arms and legs"}
+HOLD_NAMES = {"lower": "lower body (root path and legs)", "upper": "upper body (spine, arms and head)"}
 
 
 def escape_md(text: str) -> str:
@@ -96,6 +97,9 @@ def edit_markdown(result: Result, word_map: list[int]) -> str:
         what.append(f"**re-weighted** {quoted(word)} × {scale:g}")
     if r.mirror:
         what.append(f"**mirrored** {MIRROR_NAMES[r.mirror]} (left ↔ right)")
+    held = result.params.get("hold")
+    if held:
+        what.append(f"{HOLD_NAMES[held]} held to the source")
     if r.self_inject > 0:
         what.append(f"source self-attention injected for the first {r.self_inject:.0%} of the steps")
     else:

@@ -3,30 +3,33 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..editing.spec import DEFAULT_SELF_INJECT, EDIT_MODES, MIRROR_PARTS, EditSpec
+from ..editing.spec import DEFAULT_SELF_INJECT, EDIT_MODES, HOLD_CHOICES, MIRROR_PARTS, EditSpec
 from ..editing.real import (DEFAULT_INVERSION, edit_encoded_consistency, edit_inverted, encode, invert_real,
                             measure_reconstruction, read_real)
 from .common import (add_bvh_units, add_device, add_sampling, device_of, parse_reweight, print_warnings,
                      progress_bar)
 
 
-def edit_spec(a) -> EditSpec:
-    """The edit that `salad edit` and `salad edit-real` arguments describe."""
+def edit_spec(a, hold: str | None = "auto") -> EditSpec:
+    """The edit that `salad edit` and `salad edit-real` arguments describe. `hold` is salad edit's alone:
+    real-motion editing holds no parts (the spec's "auto" holds nothing there)."""
     return EditSpec(mode=a.mode, target=a.target, tau=a.tau, reweight=parse_reweight(a.reweight), mirror=a.mirror,
-                    self_inject=a.self_inject)
+                    self_inject=a.self_inject, hold=hold)
 
 
 def cmd_edit(a) -> int:
     from ..pipeline import load_pipeline
     from ..render import render_side_by_side
     device = device_of(a)
-    spec = edit_spec(a)
+    spec = edit_spec(a, hold=None if a.hold == "none" else a.hold)
     pipe = load_pipeline(a.model, bf16=not a.fp32, device=device)
     bar, update = progress_bar("editing")
     res = pipe.edit(a.source, seed=a.seed, seconds=a.seconds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                     progress=update, foot_lock=not a.no_foot_lock, spec=spec)
     bar.close()
     print_warnings(res.source, res.edited)
+    if res.params["hold"]:      # "auto" decides per prompt: say what it chose
+        print(f"held the {res.params['hold']} body to the source")
     out = Path(a.output)
     out.mkdir(parents=True, exist_ok=True)
     for name, m in (("source", res.source), ("edited", res.edited)):
@@ -48,6 +51,10 @@ def add_edit(sub) -> None:
     e.add_argument("--reweight", action="append", metavar="WORD=SCALE", help="scale a word's attention (-3..3)")
     e.add_argument("--mirror", choices=MIRROR_PARTS, default=None)
     e.add_argument("--self-inject", type=float, default=DEFAULT_SELF_INJECT, help="share of steps with source self-attention")
+    e.add_argument("--hold", choices=HOLD_CHOICES + ("none",), default="auto",
+                   help="body parts that follow the source at every step: lower (root path and legs), upper (spine, "
+                        "arms, head), none; auto (default) holds the lower body when re-weighting a word of a prompt "
+                        "whose action is done in place")
     e.add_argument("--seconds", default=None, help="length in seconds, 'auto' (default) or 'prior', as for generate")
     e.add_argument("--seed", type=int, default=0)
     add_sampling(e)

@@ -253,7 +253,7 @@ def run_edit_benchmark(pipe, classifier, cases: Sequence[EditCase] | None = None
 
     settings = {"model": getattr(pipe, "source", ""), "classifier": getattr(classifier, "meta", {}).get("path", ""),
                 "suite": suite, "seeds": seed_list, **sampling, "scales": list(scales), "frames": frames_of,
-                "edit_defaults": _edit_defaults(edits)}
+                "edit_defaults": _edit_defaults(edits), "held": _held_parts(edits)}
     results = {"settings": settings, "cases": [_case_dict(c) for c in cases], "records": records}
     results.update(summarize(cases, records, scales))
     results["time_s"] = {"edits": round(t1 - t0, 1), "baselines": round(t2 - t1, 1),
@@ -268,6 +268,15 @@ def _edit_defaults(edits: dict) -> dict[str, Any]:
     for res in edits.values():
         p = res.params
         out.setdefault(p["mode"], {"tau": p.get("tau"), "self_inject": p.get("self_inject")})
+    return out
+
+
+def _held_parts(edits: dict) -> dict[str, str | None]:
+    """The body parts each case's edits held to the source (Pipeline.resolve_hold; "mixed" if they differ)."""
+    out: dict[str, str | None] = {}
+    for key, res in edits.items():
+        hold = res.params.get("hold")
+        out[key[0]] = hold if out.get(key[0], hold) == hold else "mixed"
     return out
 
 

@@ -169,11 +169,13 @@ def _case_table(results: dict[str, Any]) -> list[str]:
 def _reweight_table(results: dict[str, Any]) -> list[str]:
     scales = results["settings"]["scales"]
     keys = [_scale_key(s) for s in scales]
-    lines = ["| Case | Word | Amplitude | " + " | ".join(f"s = {k}" for k in keys) +
-             " | Plain prompt | Spearman ρ ↑ | Monotonic ↑ |", "|" + "---|" * (len(keys) + 6)]
+    held = results["settings"].get("held", {})
+    lines = ["| Case | Word | Held to the source | Amplitude | " + " | ".join(f"s = {k}" for k in keys) +
+             " | Plain prompt | Spearman ρ ↑ | Monotonic ↑ |", "|" + "---|" * (len(keys) + 7)]
     for name, r in results["reweight"].items():
         what = f"{r['acting_side']} {r['amplitude_measure'].replace('_', ' ')} (m)"
-        lines.append(f"| {name} | {r['word']} | {what} | " + " | ".join(_fmt(r["amplitude"][k], 3) for k in keys) +
+        lines.append(f"| {name} | {r['word']} | {held.get(name) or '-'} | {what} | " +
+                     " | ".join(_fmt(r["amplitude"][k], 3) for k in keys) +
                      f" | {_fmt(r['baseline_amplitude'], 3)} | {_fmt(r['spearman'])} | {_fmt(r['monotonic'])} |")
     for measure, title in (("pose_mpjpe_m", "Lower-body pose MPJPE"), ("root_dist_m", "Root path distance")):
         lines += ["", f"{title} (m) against the source per scale (bound {REWEIGHT_BOUNDS[measure]:.2f} m):", "",
@@ -223,7 +225,10 @@ def format_report(results: dict[str, Any]) -> str:
               "the pelvis of the named hand; monotonic = never decreasing with s (and not constant). Bounds: at "
               "every s the root path stays within "
               f"{REWEIGHT_BOUNDS['root_dist_m']:.2f} m and the lower body's pose within "
-              f"{REWEIGHT_BOUNDS['pose_mpjpe_m']:.2f} m of the source (the cases are standing one-place actions)."]
+              f"{REWEIGHT_BOUNDS['pose_mpjpe_m']:.2f} m of the source (the cases are standing one-place actions). "
+              "Held to the source: the body parts whose latents the edited branch took from the source at every "
+              "step (the edit's default, hold=\"auto\": the lower body when a word of a standing action's prompt is "
+              "re-weighted)."]
     return "\n".join(lines) + "\n"
 
 
