@@ -226,23 +226,24 @@ class PromptCheck:
         ranked = sorted(best.items(), key=lambda kv: -kv[1])[:k]
         return [(self.vocab.actions.get(a, a), round(s, 3)) for a, s in ranked]
 
+    def _nearest_median(self, prompt: str, values: tuple[float, ...], k: int) -> float | None:
+        """The median of `values` (parallel to the examples) over the `k` example captions nearest to
+        `prompt`; None when the vocabulary keeps no such values."""
+        if not values:
+            return None
+        nearest = torch.topk(self.features @ self._query(prompt), min(k, len(values))).indices.tolist()
+        return float(np.median([values[i] for i in nearest]))
+
     def length_prior(self, prompt: str, k: int = LENGTH_NEIGHBOURS) -> float | None:
         """Seconds a motion for `prompt` lasts in the training data: the median length of the motions of
         the `k` example captions nearest to it (None when the vocabulary keeps no lengths)."""
-        if not self.vocab.durations:
-            return None
-        q = self._query(prompt)
-        nearest = torch.topk(self.features @ q, min(k, len(self.vocab.durations))).indices.tolist()
-        return float(np.median([self.vocab.durations[i] for i in nearest]))
+        return self._nearest_median(prompt, self.vocab.durations, k)
 
     def in_place(self, prompt: str, k: int = LENGTH_NEIGHBOURS) -> bool | None:
         """Whether `prompt` asks for an action done in place: the median root speed of the motions of the
         `k` example captions nearest to it is below IN_PLACE_SPEED (None when the vocabulary keeps no speeds)."""
-        if not self.vocab.speeds:
-            return None
-        q = self._query(prompt)
-        nearest = torch.topk(self.features @ q, min(k, len(self.vocab.speeds))).indices.tolist()
-        return float(np.median([self.vocab.speeds[i] for i in nearest])) < IN_PLACE_SPEED
+        speed = self._nearest_median(prompt, self.vocab.speeds, k)
+        return None if speed is None else speed < IN_PLACE_SPEED
 
     def unknown_words(self, prompt: str) -> list[str]:
         """Words of `prompt` no training caption uses (numbers and function words aside)."""
