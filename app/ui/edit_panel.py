@@ -31,7 +31,7 @@ MODE_HELP = {
 }
 MIRROR_CHOICES = [("no mirroring", "none"), ("legs (lower)", "lower"), ("arms (upper)", "upper"),
                   ("arms and legs (all)", "all")]
-HOLD_CHOICES = [("auto", "auto"), ("lower body", "lower"), ("upper body", "upper"), ("nothing", "none")]
+HOLD_OPTIONS = [("auto", "auto"), ("lower body", "lower"), ("upper body", "upper"), ("nothing", "none")]
 HOLD_INFO = ("the held body half moves as in the source while the edit changes the rest (lower: the legs and the "
              "path); auto keeps the legs and the path of a standing action when re-weighting a word")
 EXAMPLE_EDITS = [
@@ -107,7 +107,7 @@ def build_edit_panel(pipe, samplers=("ddim", "dpm"), sampler: str = "ddim") -> E
             self_inject = gr.Slider(0.0, 1.0, value=DEFAULT_SELF_INJECT, step=0.05, elem_id="edit-self-inject",
                                     label="Self-attention injection: share of the first steps that reuse the "
                                           "source's self-attention", info="higher keeps the timing and pose closer")
-            hold = gr.Dropdown(HOLD_CHOICES, value="auto", label="Hold to the source", info=HOLD_INFO,
+            hold = gr.Dropdown(HOLD_OPTIONS, value="auto", label="Hold to the source", info=HOLD_INFO,
                                elem_id="edit-hold")
             with gr.Accordion("Sampling", open=False):
                 with gr.Row():
