@@ -526,6 +526,29 @@ def test_a_latent_bundle_trains_on_the_batches_the_dataset_gives(tiny_model, tin
     assert doc["config"]["text_encoder"] == source.text_spec
 
 
+def test_a_tower_bundle_computes_the_captions_features_where_it_is_read(tiny_model, tiny_dataset, tmp_path):
+    from salad.training.denoiser_task import DenoiserTask
+    from salad.training.latent_bundle import LatentBundle, write_bundle
+
+    source = DenoiserTask(_bundle_config(tiny_dataset, tiny_model, tmp_path / "a"), show_progress=False)
+    lean = DenoiserTask(_bundle_config(tiny_dataset, tiny_model, tmp_path / "a"), show_progress=False,
+                        encode_text=False)
+    assert lean.text is None
+    out = write_bundle(lean, tmp_path / "bundle", part_bytes=8 << 20, progress=False, text="tower")
+    bundle = LatentBundle(out)
+    assert bundle.text.captions == source.text.captions
+    assert torch.equal(bundle.text.lengths, source.text.lengths)
+    want, got = source.text.flat.float(), bundle.text.flat.float()
+    # fp16 weights computed in fp32, then stored in bf16 like the encoder's own: rounding, not another model
+    assert float((got - want).norm() / want.norm()) < 2e-2
+    assert float((bundle.text.pooled - source.text.pooled).abs().max()) < 2e-2
+    cfg = _bundle_config(tiny_dataset, tiny_model, tmp_path / "b", bundle=str(out))
+    Trainer(DenoiserTask(cfg, show_progress=False), cfg.optim, cfg.run, ema_decay=cfg.ema_decay).fit()
+    assert (tmp_path / "b" / "model" / "config.json").is_file()
+    with pytest.raises(ValueError, match="text must be one of"):
+        write_bundle(lean, tmp_path / "other", part_bytes=8 << 20, progress=False, text="ids")
+
+
 def test_a_bundle_keeps_windows_of_motions_longer_than_the_canvas(tiny_model, tiny_dataset, tmp_path):
     from salad.training.denoiser_task import DenoiserTask
     from salad.training.latent_bundle import LatentBundle, write_bundle

@@ -78,7 +78,8 @@ def cmd_data_bundle(a) -> int:
     if a.threads:
         import torch
         torch.set_num_threads(a.threads)
-    out = write_bundle(DenoiserTask(cfg), a.out, int(a.part_mib * 2 ** 20), windows=a.windows)
+    out = write_bundle(DenoiserTask(cfg, encode_text=a.text == "features"), a.out, int(a.part_mib * 2 ** 20),
+                       windows=a.windows, text=a.text)
     sizes = sorted(f.stat().st_size for f in out.glob("*.safetensors"))
     print(f"wrote {out}: {len(sizes)} parts, the largest {sizes[-1] / 2 ** 20:.1f} MiB, "
           f"{sum(sizes) / 2 ** 20:.1f} MiB in all")
@@ -136,5 +137,8 @@ def add_parser(sub) -> None:
     n.add_argument("--out", required=True, help="output directory")
     n.add_argument("--part-mib", type=float, default=48.0, help="largest part in MiB (default: 48)")
     n.add_argument("--windows", type=int, default=8, help="windows kept per motion longer than the canvas (default: 8)")
+    n.add_argument("--text", choices=("features", "tower"), default="features",
+                   help="store the captions' token features (default), or their token ids and the text encoder's "
+                        "weights cut to them (~21 MB in all; the features are computed where the bundle is read)")
     n.add_argument("--threads", type=int, default=0)
     n.set_defaults(func=cmd_data_bundle)

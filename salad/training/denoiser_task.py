@@ -31,6 +31,7 @@ from .balance import class_weights, dataset_content
 from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum, vae_latent_checksums
 from ..models.text import load_text_encoder, parse_text_encoder_spec
 from ..models.text_bank import TextBank
+from ..precision import resolve_device
 from .configs import DenoiserTrainConfig
 from .foot_loss import planted_foot_error
 from .latent_bundle import LatentBundle
@@ -80,7 +81,9 @@ class DenoiserTask:
     # encoder since retrained); the weights are a start, not a partner, so no identity check
     new_latents = False
 
-    def __init__(self, cfg: DenoiserTrainConfig, show_progress: bool = True):
+    def __init__(self, cfg: DenoiserTrainConfig, show_progress: bool = True, encode_text: bool = True):
+        """encode_text=False loads the text encoder without encoding the captions (self.text is None):
+        for a bundle that stores the encoder's cut tower instead of the features."""
         self.cfg = cfg
         try:
             self.vae, self.normalizer, self.latent_scale, _ = load_vae(cfg.vae)
@@ -112,8 +115,8 @@ class DenoiserTask:
             if cfg.model.text_dim != self.text_encoder.dim:
                 raise ValueError(f"model.text_dim is {cfg.model.text_dim} but the {self.text_encoder.name} "
                                  f"text encoder gives {self.text_encoder.dim}-d features")
-            self.text = TextBank(self.text_encoder, [c for cs in self.captions for c in cs], progress=show_progress,
-                                 dtype=torch.bfloat16)
+            self.text = (TextBank(self.text_encoder, [c for cs in self.captions for c in cs], progress=show_progress,
+                                  dtype=torch.bfloat16) if encode_text else None)
         self._by_length = np.argsort(np.minimum(self.lengths, self.canvas), kind="stable")
         self._weights = class_weights(self.content, d.balance)
         self.schedule = NoiseSchedule(cfg.diffusion)
@@ -132,7 +135,7 @@ class DenoiserTask:
         if cfg.posterior_noise != 0.0 or cfg.contact_loss > 0:
             raise ConfigError("a latent bundle holds the posterior means alone: training from data.bundle needs "
                               "posterior_noise = 0 and contact_loss = 0 (train on data.root for the others)")
-        self.bundle = b = LatentBundle(cfg.data.bundle)
+        self.bundle = b = LatentBundle(cfg.data.bundle, resolve_device(cfg.run.device))
         if b.vae_checksum not in vae_latent_checksums(cfg.vae):
             raise ConfigError(f"{cfg.data.bundle} holds another VAE's latents than {cfg.vae}'s")
         if b.canvas != self.canvas or abs(b.latent_scale - self.latent_scale) > 1e-6:

@@ -20,22 +20,35 @@ import torch
 
 from ..checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from ..data.labels import content_of
+from ..models.text import tower_token_features
 from ..models.text_bank import TextBank
 
 KIND = "latent-bundle"
 TEXT_CHUNK_ROWS = 16384          # token rows per stored tensor, so the text spreads over parts
 HEADER_BYTES = 256               # a tensor's share of its file's safetensors header, at most
+TEXT_FORMS = ("features", "tower")
 
 
 @torch.no_grad()
-def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progress: bool = True) -> Path:
-    """Write the training data of `task` (a DenoiserTask over a dataset) as a bundle at `out`."""
+def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progress: bool = True,
+                 text: str = "features") -> Path:
+    """Write the training data of `task` (a DenoiserTask over a dataset) as a bundle at `out`.
+
+    text="features" stores every caption's token features (task.text); "tower" stores the captions'
+    token ids and the text encoder's weights cut to them instead, and the features are computed where
+    the bundle is read: ~21 MB rather than ~3 KB a caption, which makes a many-caption build fit a
+    bounded transfer (the 12-caption Bandai build's features are ~0.3 GB)."""
     from tqdm import tqdm
 
     if part_bytes <= HEADER_BYTES:
         raise ValueError(f"parts must hold more than {HEADER_BYTES} bytes, got {part_bytes}")
     if windows < 1:
         raise ValueError(f"windows must be >= 1, got {windows}")
+    if text not in TEXT_FORMS:
+        raise ValueError(f"text must be one of {', '.join(TEXT_FORMS)}, got {text!r}")
+    if text == "tower" and not hasattr(task.text_encoder, "trimmed_tower"):
+        raise ValueError(f"the {task.text_spec.get('name')} text encoder cannot be stored as a cut tower; "
+                         "write this bundle with its token features (text='features')")
     items = task.dataset.items
     canvas = task.canvas
     try:
@@ -57,11 +70,19 @@ def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progr
         if len(it.features) > canvas:
             starts = np.round(np.linspace(0, len(it.features) - canvas, windows)).astype(int)
             tensors[f"windows.{i}"] = task.encode([it.features[s:s + canvas] for s in starts])[0].to(torch.float16)
-    flat, lengths, pooled = task.text.tensors()
-    rows = max(1, min(TEXT_CHUNK_ROWS, (part_bytes - HEADER_BYTES) // (flat.shape[1] * flat.element_size())))
-    for j, s in enumerate(range(0, len(flat), rows)):
-        tensors[f"text.flat.{j}"] = flat[s:s + rows]
-    tensors["text.lengths"], tensors["text.pooled"] = lengths, pooled
+    tower_config = None
+    if text == "tower":
+        captions = list(dict.fromkeys([""] + [c for cs in task.captions for c in cs]))
+        ids, lengths, state, tower_config = task.text_encoder.trimmed_tower(captions)
+        tensors["text.ids"], tensors["text.lengths"] = ids, lengths
+        tensors.update({f"tower.{k}": v for k, v in state.items()})
+    else:
+        captions = task.text.captions
+        flat, lengths, pooled = task.text.tensors()
+        rows = max(1, min(TEXT_CHUNK_ROWS, (part_bytes - HEADER_BYTES) // (flat.shape[1] * flat.element_size())))
+        for j, s in enumerate(range(0, len(flat), rows)):
+            tensors[f"text.flat.{j}"] = flat[s:s + rows]
+        tensors["text.lengths"], tensors["text.pooled"] = lengths, pooled
 
     parts: dict[str, dict[str, torch.Tensor]] = {}
     size = part_bytes
@@ -75,7 +96,7 @@ def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progr
         parts[f"part-{len(parts) - 1}"][name] = t.contiguous()
         size += n
     config = {"canvas": canvas, "latent_scale": task.latent_scale, "vae_checksum": task.vae_checksum,
-              "text_encoder": task.text_spec, "text_captions": task.text.captions,
+              "text_encoder": task.text_spec, "text_captions": captions, "text_tower": tower_config,
               "lengths": [len(it.features) for it in items], "captions": [list(it.captions) for it in items],
               "content": content, "windows": windows}
     return save_checkpoint(out, KIND, config, parts, {"motions": len(items), "source": str(task.cfg.data.root)})
@@ -85,7 +106,8 @@ class LatentBundle:
     """A bundle read back: per-motion lengths, captions and content classes, the posterior means
     on the canvas, and the text bank."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, device: torch.device | str = "cpu"):
+        """`device` computes the text features of a bundle that stores the cut text tower."""
         doc, parts = load_checkpoint(path, kind=KIND)
         c = doc["config"]
         t: dict[str, torch.Tensor] = {}
@@ -112,6 +134,11 @@ class LatentBundle:
             else:
                 raise CheckpointError(f"{path}: no latents for motion {i}")
         self.windows = torch.stack(wins) if wins else torch.zeros(0, int(c["windows"]), *empty.shape)
+        if "text.ids" in t:
+            state = {k[len("tower."):]: v for k, v in t.items() if k.startswith("tower.")}
+            flat, pooled = tower_token_features(t["text.ids"], t["text.lengths"], state, c["text_tower"], device)
+            self.text = TextBank.from_tensors(c["text_captions"], flat.to(torch.bfloat16), t["text.lengths"], pooled)
+            return
         chunks = sorted((k for k in t if k.startswith("text.flat.")), key=lambda k: int(k.rsplit(".", 1)[1]))
         self.text = TextBank.from_tensors(c["text_captions"], torch.cat([t[k] for k in chunks]),
                                           t["text.lengths"], t["text.pooled"])
