@@ -51,6 +51,24 @@ def test_swap_pairs_words_by_position_and_needs_equal_length(encoder):
         align_words(["a", "b"], ["a", "b", "c"], "swap")
 
 
+def test_a_swap_led_by_the_source_for_one_step_lets_the_new_word_keep_its_map(encoder):
+    from salad.editing.build import build_edit
+    from salad.editing.spec import EditSpec
+
+    text = encoder.encode(["a person walks and turns right", "a person walks and turns left"])
+    spec = EditSpec(mode="swap", target="a person walks and turns left")
+
+    def rule(steps, tau=None):
+        s = spec if tau is None else EditSpec(mode="swap", target=spec.target, tau=tau)
+        return build_edit(text, steps, 40, s, "a person walks and turns right", spec.target,
+                          cfg_layout=False).controller.rule
+    # the consistency student's 4 steps at tau 0.8: the source leads the first step only
+    assert rule(4).own_replaced and rule(5).own_replaced
+    # DDIM's 50: ten steps, the source's maps for every word (Prompt-to-Prompt's swap)
+    assert not rule(50).own_replaced and not rule(6).own_replaced
+    assert rule(50, tau=0.99).own_replaced and not rule(4, tau=0.5).own_replaced
+
+
 def test_rule_semantics_on_small_tensors(encoder):
     text = encoder.encode(["", "", "a person walks", "a person runs"])
     L = text.tokens.shape[1]
@@ -65,10 +83,19 @@ def test_rule_semantics_on_small_tensors(encoder):
     # default tau = 0.8T: source for the first 20% of the steps
     sw = WordSwap(al)
     assert torch.equal(sw(src, tgt, 0.1), al.apply(src)) and torch.equal(sw(src, tgt, 0.3), tgt)
+    # own_replaced: in the source-led steps the swapped word ("runs") keeps its own map, the others the source's
+    swapped = text.token_indices(3, 2)
+    assert al.replaced.nonzero().flatten().tolist() == swapped
+    own = WordSwap(al, own_replaced=True)(src, tgt, 0.1)
+    assert torch.equal(own[..., swapped], tgt[..., swapped])
+    kept = [k for k in range(L) if k not in swapped]
+    assert torch.equal(own[..., kept], al.apply(src)[..., kept])
+    assert torch.equal(WordSwap(al, own_replaced=True)(src, tgt, 0.3), tgt)
     assert torch.equal(KeepSource()(src, tgt, 0.5), src)
 
     ref_text = encoder.encode(["", "", "a person walks", "a person walks happily"])
     ral = align_tokens(ref_text, 2, 3, "refine")
+    assert not ral.replaced.any()                      # refine adds words; it replaces none
     L = ref_text.tokens.shape[1]
     src, tgt = maps(L=L, seed=3), maps(L=L, seed=4)
     out = Refine(ral)(src, tgt, 0.5)

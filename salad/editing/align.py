@@ -18,6 +18,7 @@ import torch
 class TokenAlignment:
     weights: torch.Tensor      # (L, L): column j mixes the source tokens that target token j takes its map from
     inserted: torch.Tensor     # (L,) bool: target tokens with no counterpart in the source
+    replaced: torch.Tensor     # (L,) bool: target tokens of a word that differs from its source word (swap)
     source_words: list[str]
     target_words: list[str]
     word_map: list[int]        # for each target word, the aligned source word or -1
@@ -78,6 +79,7 @@ def align_tokens(text, source_row: int, target_row: int, mode: str) -> TokenAlig
     t_tok, t_special = _word_tokens(text.token_words[target_row], text.mask[target_row])
     W = torch.zeros(L, L)
     inserted = torch.zeros(L, dtype=torch.bool)
+    replaced = torch.zeros(L, dtype=torch.bool)
     # Special tokens (start, end, punctuation) correspond in order: first to first, last to last.
     if s_special and t_special:
         pairs = [(s_special[0], t_special[0]), (s_special[-1], t_special[-1])]
@@ -91,6 +93,8 @@ def align_tokens(text, source_row: int, target_row: int, mode: str) -> TokenAlig
             inserted[targets] = True
             continue
         sources = s_tok[sw]
+        if src_words[sw] != tgt_words[tw]:
+            replaced[targets] = True
         if len(sources) == len(targets):
             for a, b in zip(sources, targets):
                 W[a, b] = 1.0
@@ -100,4 +104,5 @@ def align_tokens(text, source_row: int, target_row: int, mode: str) -> TokenAlig
             for b in targets:
                 W[sources, b] = 1.0 / len(sources)
     device = text.tokens.device       # built once where the attention maps it is applied to live
-    return TokenAlignment(W.to(device), inserted.to(device), list(src_words), list(tgt_words), word_map)
+    return TokenAlignment(W.to(device), inserted.to(device), replaced.to(device), list(src_words), list(tgt_words),
+                          word_map)

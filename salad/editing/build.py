@@ -11,6 +11,7 @@ re-weighting and the attention store are built here once.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -41,7 +42,9 @@ def build_edit(text, steps: int, frames: int, spec: EditSpec, source_prompt: str
     align_mode = {"swap": "swap", "refine": "refine"}.get(mode, "same" if target_prompt == source_prompt else "refine")
     alignment = align_tokens(text, source_row=src_row, target_row=tgt_row, mode=align_mode)
     if mode == "swap":
-        rule = WordSwap(alignment, DEFAULT_TAU["swap"] if spec.tau is None else spec.tau)
+        tau = DEFAULT_TAU["swap"] if spec.tau is None else spec.tau
+        source_led = math.ceil((1.0 - tau) * steps - 1e-9)      # steps with step / steps < 1 - tau
+        rule = WordSwap(alignment, tau, own_replaced=source_led <= 1)
     elif mode == "refine" or target_prompt != source_prompt:
         rule = Refine(alignment, DEFAULT_TAU["refine"] if spec.tau is None else spec.tau)
     else:

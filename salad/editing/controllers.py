@@ -53,16 +53,24 @@ class KeepSource:
 
 class WordSwap:
     """Source maps while t >= tau (the early steps), the target's own maps after.
-    tau is a fraction of T: 0.8 means the first 20% of the steps follow the source."""
+    tau is a fraction of T: 0.8 means the first 20% of the steps follow the source.
 
-    def __init__(self, alignment: TokenAlignment, tau: float = DEFAULT_TAU["swap"]):
+    own_replaced: the swapped words keep their own maps in the source-led steps too. Where the
+    source leads for a single step (a few-step sampler), that step lays out the whole motion, and
+    the new word attending where the old one did pulls it halfway back to the source: the
+    student's "walks and turns right" -> "left" ended at -26° to -40° (source about -90°, target +70°)."""
+
+    def __init__(self, alignment: TokenAlignment, tau: float = DEFAULT_TAU["swap"], own_replaced: bool = False):
         if not 0.0 <= tau <= 1.0:
             raise ValueError(f"tau must be in [0, 1], got {tau}")
-        self.alignment, self.tau = alignment, tau
+        self.alignment, self.tau, self.own_replaced = alignment, tau, own_replaced
 
     def __call__(self, src, tgt, progress: float):
         if progress < 1.0 - self.tau:
-            return self.alignment.apply(src)
+            mapped = self.alignment.apply(src)
+            if self.own_replaced:
+                return torch.where(self.alignment.replaced.to(tgt.device), tgt, mapped)
+            return mapped
         return tgt
 
 
