@@ -36,7 +36,7 @@ def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progr
 
     text="features" stores every caption's token features (task.text); "tower" stores the captions'
     token ids and the text encoder's weights cut to them instead, and the features are computed where
-    the bundle is read: ~21 MB rather than ~3 KB a caption, which makes a many-caption build fit a
+    the bundle is read: ~21 MB rather than ~10 KB a caption, which makes a many-caption build fit a
     bounded transfer (the 12-caption Bandai build's features are 417 MiB)."""
     from tqdm import tqdm
 
