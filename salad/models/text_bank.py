@@ -12,8 +12,7 @@ class TextBank:
 
     def __init__(self, encoder, captions: Sequence[str], chunk: int = 256, progress: bool = True,
                  dtype: torch.dtype = torch.float32):
-        # "" is always present: it is the unconditional row of classifier-free guidance
-        captions = list(dict.fromkeys([""] + list(captions)))
+        captions = self.distinct(captions)
         rows, lengths = [], []
         pooled = torch.zeros(len(captions), encoder.dim)
         for s in tqdm(range(0, len(captions), chunk), desc="text features", disable=not progress):
@@ -24,6 +23,12 @@ class TextBank:
                 lengths.append(int(n[b]))
             pooled[s:s + len(n)] = out.pooled.float()
         self._hold(captions, torch.cat(rows), torch.tensor(lengths), pooled)
+
+    @staticmethod
+    def distinct(captions: Sequence[str]) -> list[str]:
+        """The bank's caption order: "" first (the unconditional row of classifier-free guidance),
+        then each caption once, in order of first appearance."""
+        return list(dict.fromkeys([""] + list(captions)))
 
     def _hold(self, captions: list[str], flat: torch.Tensor, lengths: torch.Tensor, pooled: torch.Tensor) -> None:
         self.captions, self.flat, self.lengths, self.pooled = captions, flat, lengths.long(), pooled.float()

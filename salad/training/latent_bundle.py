@@ -72,7 +72,7 @@ def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progr
             tensors[f"windows.{i}"] = task.encode([it.features[s:s + canvas] for s in starts])[0].to(torch.float16)
     tower_config = None
     if text == "tower":
-        captions = list(dict.fromkeys([""] + [c for cs in task.captions for c in cs]))
+        captions = TextBank.distinct([c for cs in task.captions for c in cs])
         ids, lengths, state, tower_config = task.text_encoder.trimmed_tower(captions)
         tensors["text.ids"], tensors["text.lengths"] = ids, lengths
         tensors.update({f"tower.{k}": v for k, v in state.items()})
