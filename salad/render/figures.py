@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import os
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
@@ -318,6 +319,11 @@ def attention_overview(att: np.ndarray, words: Sequence[str], fps: float = 20, c
     return fig
 
 
+# matplotlib is not thread-safe (text rendering shares font objects across figures), and the studio draws
+# PNGs from several request threads at once.
+_MATPLOTLIB = threading.Lock()
+
+
 def attention_png(att: np.ndarray, words: Sequence[str] | str, path: str | os.PathLike, fps: float = 20,
                   cols: int = 3, zmax: float | None = None, dpi: int = 150) -> Path:
     """The heatmaps as a PNG (one panel per word, shared colour scale), written atomically."""
@@ -338,29 +344,30 @@ def attention_png(att: np.ndarray, words: Sequence[str] | str, path: str | os.Pa
     # tick label again and took more than half of the time.
     left, right, top, bottom, gap_w, gap_h, bar = 0.95, 0.95, 0.35, 0.5, 0.15, 0.4, 0.14
     width, height = left + right + 3.2 * cols + gap_w * (cols - 1), top + bottom + 1.6 * rows + gap_h * (rows - 1)
-    fig = Figure(figsize=(width, height), dpi=dpi)
-    FigureCanvasAgg(fig)
-    fig.subplots_adjust(left=left / width, right=1 - right / width, top=1 - top / height, bottom=bottom / height,
-                        wspace=gap_w / 3.2, hspace=gap_h / 1.6)
-    axes = np.atleast_1d(fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False)).ravel()
-    cmap = LinearSegmentedColormap.from_list("attention", [style.hex_rgb(c) for c in style.ATTENTION_CMAP])
-    zr = _color_range(arr, zmax)
-    extent = (0.0, t_len / fps, sk.BODY_PARTS.size - 0.5, -0.5)
-    image = None
-    for i, ax in enumerate(axes):
-        if i >= n:
-            ax.set_visible(False)
-            continue
-        image = ax.imshow(arr[i], aspect="auto", cmap=cmap, vmin=zr[0], vmax=zr[1], extent=extent,
-                          interpolation="nearest")
-        ax.set_title(f"“{words[i]}”", fontsize=10)
-        ax.set_yticks(range(sk.BODY_PARTS.size), PART_LABELS, fontsize=8)
-        ax.tick_params(axis="x", labelsize=8)
-        if i // cols == rows - 1 or i + cols >= n:
-            ax.set_xlabel("time (s)", fontsize=9)
-            ax.tick_params(axis="x", labelbottom=True)
-    cax = fig.add_axes([1 - (right - 0.25) / width, bottom / height, bar / width, 1 - (top + bottom) / height])
-    fig.colorbar(image, cax=cax, label="attention")
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, format="png", facecolor="white")
+    with _MATPLOTLIB:
+        fig = Figure(figsize=(width, height), dpi=dpi)
+        FigureCanvasAgg(fig)
+        fig.subplots_adjust(left=left / width, right=1 - right / width, top=1 - top / height, bottom=bottom / height,
+                            wspace=gap_w / 3.2, hspace=gap_h / 1.6)
+        axes = np.atleast_1d(fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False)).ravel()
+        cmap = LinearSegmentedColormap.from_list("attention", [style.hex_rgb(c) for c in style.ATTENTION_CMAP])
+        zr = _color_range(arr, zmax)
+        extent = (0.0, t_len / fps, sk.BODY_PARTS.size - 0.5, -0.5)
+        image = None
+        for i, ax in enumerate(axes):
+            if i >= n:
+                ax.set_visible(False)
+                continue
+            image = ax.imshow(arr[i], aspect="auto", cmap=cmap, vmin=zr[0], vmax=zr[1], extent=extent,
+                              interpolation="nearest")
+            ax.set_title(f"“{words[i]}”", fontsize=10)
+            ax.set_yticks(range(sk.BODY_PARTS.size), PART_LABELS, fontsize=8)
+            ax.tick_params(axis="x", labelsize=8)
+            if i // cols == rows - 1 or i + cols >= n:
+                ax.set_xlabel("time (s)", fontsize=9)
+                ax.tick_params(axis="x", labelbottom=True)
+        cax = fig.add_axes([1 - (right - 0.25) / width, bottom / height, bar / width, 1 - (top + bottom) / height])
+        fig.colorbar(image, cax=cax, label="attention")
+        with atomic_path(out) as tmp:
+            fig.savefig(tmp, format="png", facecolor="white")
     return out
