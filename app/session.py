@@ -41,24 +41,46 @@ class Result:
             raise ValueError(f"result kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
         self._cache: OrderedDict[tuple, Any] = OrderedDict()
         self._lock = threading.Lock()
+        self._making = 0                # cached() calls writing into the folder right now
+        self._retired = False           # replaced by newer results: the folder goes once nothing writes to it
         self.reused = 0                 # how often an identical request was answered with this result
 
     def cached(self, key: tuple, make: Callable[[], Any]) -> Any:
         """The value stored under `key`, made on first use. A cached file that has since
         disappeared (pruned) is made again. Two requests for the same new key may both
-        make it; the results are equal, so the last one simply wins."""
+        make it; the results are equal, so the last one simply wins. A retired result makes
+        nothing new (ResultGone), and its folder outlives every make() already under way."""
         with self._lock:
             if key in self._cache:
                 value = self._cache[key]
                 if not _missing_file(value):
                     self._cache.move_to_end(key)
                     return value
-        value = make()
+            if self._retired:
+                raise ResultGone(f"this {self.kind} result was replaced by newer ones and its files are gone; "
+                                 "run the request again")
+            self._making += 1
+        try:
+            value = make()
+        finally:
+            with self._lock:
+                self._making -= 1
+                remove = self._retired and not self._making
+            if remove:
+                shutil.rmtree(self.folder, ignore_errors=True)
         with self._lock:
             self._cache[key] = value
             while len(self._cache) > CACHE_ENTRIES:
                 self._cache.popitem(last=False)
         return value
+
+    def retire(self) -> None:
+        """Give up the result: its folder goes now, or when the last render into it ends."""
+        with self._lock:
+            self._retired = True
+            remove = not self._making
+        if remove:
+            shutil.rmtree(self.folder, ignore_errors=True)
 
     def peek(self, key: tuple, default: Any = None) -> Any:
         """The value stored under `key` without making it: `default` when there is none yet (or
@@ -68,8 +90,12 @@ class Result:
         return default if value is not default and _missing_file(value) else value
 
     def intact(self) -> bool:
-        """Whether every file of the result is still on disk."""
-        return self.folder.is_dir() and all(p.exists() for p in self.files.values())
+        """Whether the result is kept and every file of it is still on disk."""
+        return not self._retired and self.folder.is_dir() and all(p.exists() for p in self.files.values())
+
+
+class ResultGone(ValueError):
+    """A view asked of a result that newer results have replaced."""
 
 
 def _missing_file(value) -> bool:
@@ -103,13 +129,13 @@ class Session:
         return d
 
     def add(self, result: Result) -> None:
-        """Make `result` the latest of its kind; folders of older results (beyond KEEP_RESULTS) go."""
+        """Make `result` the latest of its kind; older results (beyond KEEP_RESULTS) retire."""
         with self._lock:
             results = self._results[result.kind]
             results.append(result)
             dropped, self._results[result.kind] = results[:-KEEP_RESULTS], results[-KEEP_RESULTS:]
         for old in dropped:
-            shutil.rmtree(old.folder, ignore_errors=True)
+            old.retire()
 
     def reuse(self, kind: str, request) -> Result | None:
         """A kept result of an identical request whose files are all still there, made the

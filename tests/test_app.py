@@ -19,10 +19,11 @@ from gradio_client import Client
 from gradio_client.exceptions import AppError
 
 from salad.editing.store import AttentionMaps
+from salad.files import atomic_write
 from salad.motion.bvh import load_bvh
 
 from app.figures import frames_to_restyle_slider, plot_data
-from app.session import KEEP_RESULTS, Result, Session
+from app.session import KEEP_RESULTS, Result, ResultGone, Session
 from app.studio import Studio, file_stem, word_tint
 from app.ui.handlers import word_choices
 from app.validation import GenerateRequest, parse_attention, parse_generate
@@ -517,6 +518,28 @@ def test_result_cache_is_bounded(tmp_path):
         r.cached(("k", i), lambda: i)
     assert r.cached(("k", 99), lambda: -1) == 99 and r.cached(("k", 0), lambda: -1) == -1
     assert isinstance(Session("k", tmp_path / "s").current, type(None))
+
+
+def test_a_replaced_result_keeps_its_folder_until_its_render_ends(tmp_path):
+    """A render into an old result's folder may still run when newer results replace it: the
+    folder goes when the render ends, and no new render starts in it."""
+    session = Session("k", tmp_path / "s")
+    req = GenerateRequest("a", None, 0, 1, 0.0, "ddim")
+    old = Result(req, None, session.new_folder())
+    session.add(old)
+
+    def render() -> Path:
+        for seed in range(1, KEEP_RESULTS + 1):     # newer results arrive while this one renders
+            session.add(Result(GenerateRequest("a", None, seed, 1, 0.0, "ddim"), None, session.new_folder()))
+        assert old.folder.is_dir(), "the folder went while a render was writing into it"
+        return atomic_write(old.folder / "video.mp4", lambda f: f.write(b"frames"))
+
+    assert old.cached(("full video",), render).name == "video.mp4"
+    assert not old.folder.exists() and not old.intact()
+    with pytest.raises(ResultGone, match="replaced by newer ones"):
+        old.cached(("another view",), lambda: 1)
+    kept = session.latest("generate")
+    assert kept.folder.is_dir() and kept.intact() and session.reuse("generate", req) is None
 
 
 def test_prompt_warnings_lead_the_summary(client, pipe, tiny_dataset, monkeypatch):
