@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from salad.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from salad.diffusion.sampling import sample
+from salad.diffusion.sampling import cfg_combine, sample
 from salad.diffusion.schedule import NoiseSchedule
 from salad.models.attention import AttentionCall
 from salad.models.denoiser import Denoiser, DenoiserConfig
@@ -198,6 +198,41 @@ def test_cfg_scale_one_equals_conditional_and_ddim_is_deterministic():
     assert not torch.allclose(a, b)
     d = sample(_toy_model(den, both, None), noise, s, sampler="dpm", steps=8, cfg_scale=7.5)
     assert torch.isfinite(d).all()
+
+
+def test_stochastic_ddim_is_seeded_shares_noise_across_branches_and_needs_ddim():
+    torch.manual_seed(0)
+    den = tiny_denoiser().eval()
+    s = NoiseSchedule()
+    uncond, cond = torch.randn(1, 3, 16), torch.randn(1, 3, 16)
+    text = torch.cat((uncond, uncond, cond, cond))    # two branches with one prompt, CFG rows first
+    model = _toy_model(den, text, None)
+    noise = torch.randn(1, 4, 7, 32, generator=torch.Generator().manual_seed(3)).repeat(2, 1, 1, 1)
+
+    def run(seed, **kw):
+        return sample(model, noise, s, steps=8, cfg_scale=7.5, eta=1.0,
+                      generator=torch.Generator().manual_seed(seed), **kw)
+    a, b = run(1, shared_noise=True), run(1, shared_noise=True)
+    assert torch.equal(a, b), "a seed gives one result"
+    torch.testing.assert_close(a[0], a[1], atol=1e-5, rtol=1e-5)  # same prompt, same z_T, same fresh noise
+    assert not torch.allclose(run(2, shared_noise=True), a, atol=1e-3), "another seed re-noises otherwise"
+    apart = run(1)
+    assert not torch.allclose(apart[0], apart[1], atol=1e-3), "unshared rows draw their own noise"
+    deterministic = sample(model, noise, s, steps=8, cfg_scale=7.5)
+    assert not torch.allclose(deterministic, a, atol=1e-3)
+    with pytest.raises(ValueError, match="needs the ddim sampler"):
+        sample(model, noise, s, sampler="dpm", steps=8, eta=1.0)
+
+
+def test_cfg_rescale_matches_the_conditional_rows_spread():
+    uncond, cond = torch.randn(2, 5, 7, 4), 3 * torch.randn(2, 5, 7, 4)
+    out = torch.cat((uncond, cond))
+    plain, full = cfg_combine(out, 7.5), cfg_combine(out, 7.5, rescale=1.0)
+    dims = (1, 2, 3)
+    torch.testing.assert_close(full.std(dims), cond.std(dims), atol=1e-5, rtol=1e-5)
+    assert (plain.std(dims) > 2 * cond.std(dims)).all()
+    torch.testing.assert_close(cfg_combine(out, 7.5, rescale=0.5), (plain + full) / 2)
+    assert torch.equal(cfg_combine(out, 1.0, rescale=0.7), cond)
 
 
 def test_tiny_models_overfit_a_tiny_batch():

@@ -97,3 +97,25 @@ def test_generate_batch_with_mixed_lengths(tiny_model):
     assert all(np.isfinite(m.joints).all() for m in out)
     with pytest.raises(ValueError, match="multiples of 4"):
         pipe.generate_batch(["a person walks"], [30])
+
+
+def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tiny_model):
+    pipe = load_pipeline(tiny_model)
+    assert (pipe.ddim_eta, pipe.cfg_rescale) == (1.0, 0.7)              # the defaults the model card measures
+    walk = dict(seconds=1.6, seed=4, steps=6, foot_lock=False)
+    a, b = pipe.generate("a person walks forward", **walk), pipe.generate("a person walks forward", **walk)
+    np.testing.assert_array_equal(a.joints, b.joints)                  # a seed still gives one motion
+    assert not np.allclose(pipe.generate("a person walks forward", **{**walk, "seed": 5}).joints, a.joints)
+    # both edit branches draw the same fresh noise as a plain generation of the source
+    res = pipe.edit("a person walks forward", mode="mirror", mirror="all", **walk)
+    np.testing.assert_allclose(res.source.joints, a.joints, atol=1e-3)
+    pipe.set_sampling(ddim_eta=0.0, cfg_rescale=0.0)
+    assert not np.allclose(pipe.generate("a person walks forward", **walk).joints, a.joints, atol=1e-3)
+    for bad in ({"ddim_eta": 1.5}, {"ddim_eta": -0.1}, {"cfg_rescale": float("nan")}, {"cfg_rescale": "high"}):
+        with pytest.raises(ValueError, match="must be a number in \\[0, 1\\]"):
+            pipe.set_sampling(**bad)
+    assert (pipe.ddim_eta, pipe.cfg_rescale) == (0.0, 0.0)              # a refused setting changes nothing
+    out = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "a person walks", "--model", str(tiny_model),
+                          "--ddim-eta", "2", "-o", "/tmp/never.npy"], cwd=REPO, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 2 and "ddim_eta must be a number in [0, 1], got 2.0" in out.stderr

@@ -62,14 +62,28 @@ SAMPLER_HELP = {"ddim": "DDIM, the paper's sampler", "dpm": "DPM-Solver++",
                 "consistency": "the consistency-distilled student: 1-4 steps, one forward each"}
 
 
-def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SAMPLER_CHOICES) -> None:
-    """--steps, --cfg and --sampler, for every command that samples."""
+def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SAMPLER_CHOICES,
+                 teacher_options: bool = True) -> None:
+    """--steps, --cfg and --sampler, for every command that samples; with teacher_options also
+    --ddim-eta and --cfg-rescale (set on the pipeline with apply_sampling)."""
     parser.add_argument("--steps", type=int, default=None,
                         help="denoising steps (default: 50 for ddim and dpm, 4 for consistency)")
     parser.add_argument("--cfg", type=float, default=7.5,
                         help="classifier-free guidance scale (the consistency student takes the range it learnt)")
     parser.add_argument("--sampler", choices=samplers, default="ddim",
                         help="; ".join(f"{k}: {SAMPLER_HELP[k]}" for k in samplers))
+    if teacher_options:
+        parser.add_argument("--ddim-eta", type=float, default=None,
+                            help="fresh noise DDIM adds at each step, 0-1 (default 1; 0: the paper's deterministic "
+                                 "DDIM, whose walks slide more)")
+        parser.add_argument("--cfg-rescale", type=float, default=None,
+                            help="pull guided predictions towards the conditional one's scale, 0-1 (default 0.7; "
+                                 "0: plain guidance)")
+
+
+def apply_sampling(pipe, a) -> None:
+    """The command's --ddim-eta and --cfg-rescale, checked, on the pipeline."""
+    pipe.set_sampling(getattr(a, "ddim_eta", None), getattr(a, "cfg_rescale", None))
 
 
 def add_bvh_units(parser: argparse.ArgumentParser) -> None:

@@ -38,7 +38,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     c.add_argument("--speed", type=float, default=1.0, help="walking speed along --path-preset, m/s")
     c.add_argument("--height", type=float, default=None, help="also hold the pelvis at this height along a path (m)")
     c.add_argument("--strength", type=float, default=1.0, help="guidance strength (0 = none)")
-    add_sampling(c, ("ddim", "consistency"))
+    add_sampling(c, ("ddim", "consistency"), teacher_options=False)
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--repeats", type=int, default=None, help="time-travel repeats per step (default: 1-3 by phase)")
     c.add_argument("--gradient-steps", type=int, default=None, help="guidance steps per network evaluation")

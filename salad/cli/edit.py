@@ -6,7 +6,7 @@ from pathlib import Path
 from ..editing.spec import DEFAULT_SELF_INJECT, EDIT_MODES, HOLD_CHOICES, MIRROR_PARTS, EditSpec
 from ..editing.real import (DEFAULT_INVERSION, edit_encoded_consistency, edit_inverted, encode, invert_real,
                             measure_reconstruction, read_real)
-from .common import (add_bvh_units, add_device, add_sampling, device_of, parse_reweight, print_warnings,
+from .common import (add_bvh_units, add_device, add_sampling, apply_sampling, device_of, parse_reweight, print_warnings,
                      progress_bar)
 
 
@@ -23,6 +23,7 @@ def cmd_edit(a) -> int:
     device = device_of(a)
     spec = edit_spec(a, hold=None if a.hold == "none" else a.hold)
     pipe = load_pipeline(a.model, bf16=not a.fp32, device=device)
+    apply_sampling(pipe, a)
     bar, update = progress_bar("editing")
     res = pipe.edit(a.source, seed=a.seed, seconds=a.seconds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                     progress=update, foot_lock=not a.no_foot_lock, spec=spec)
@@ -85,7 +86,7 @@ def add_edit_real(sub) -> None:
     p.add_argument("--reweight", action="append", metavar="WORD=SCALE", help="scale a word's attention (-3..3)")
     p.add_argument("--mirror", choices=MIRROR_PARTS, default=None)
     p.add_argument("--self-inject", type=float, default=DEFAULT_SELF_INJECT, help="share of steps with source self-attention")
-    add_sampling(p, ("ddim", "consistency"))
+    add_sampling(p, ("ddim", "consistency"), teacher_options=False)
     p.add_argument("--seed", type=int, default=0, help="the consistency sampler's noise seed (ddim inverts instead)")
     p.add_argument("--trim", action="store_true", help="keep the start of motions longer than the model's canvas")
     p.add_argument("--skeleton", default=None,

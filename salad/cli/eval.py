@@ -19,7 +19,7 @@ from ..eval.length_dist import DEFAULT_BIN_FRAMES, MIN_FRAMES, evaluate_lengths,
 from ..eval.paraphrases import PROMPT_SETS
 from ..eval.real_edit_bench import SDEDIT_STRENGTHS, run_real_edit_bench
 from ..files import atomic_write_text
-from .common import add_device, add_sampling, device_of, progress_bar
+from .common import add_device, add_sampling, apply_sampling, device_of, progress_bar
 
 
 def cmd_eval(a) -> int:
@@ -39,6 +39,7 @@ def cmd_eval(a) -> int:
                                         progress=True)}
     for model in [] if a.real_only else a.model or [None]:
         pipe = load_pipeline(model, bf16=not a.fp32, device=device)
+        apply_sampling(pipe, a)
         name = "SALAD (embedded)" if model is None else f"SALAD ({Path(model).name})"
         vae = VAEReconstruction(pipe)
         rows[f"{name} VAE reconstruction"] = evaluate_t2m(vae, ds, ev, repeats=1, seed=a.seed, progress=True)
@@ -101,7 +102,7 @@ def add_eval_control(sub) -> argparse.ArgumentParser:
     p.add_argument("--gradient-steps", default=None, help="guidance steps per network evaluation")
     p.add_argument("--refine-steps", default=None, help="guidance steps on the final latent")
     p.add_argument("--repeats", default=None, help="time-travel repeats per step (default: 1-3 by phase)")
-    add_sampling(p, ("ddim", "consistency"))
+    add_sampling(p, ("ddim", "consistency"), teacher_options=False)
     p.add_argument("--max-frames", type=int, default=196)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
@@ -190,6 +191,7 @@ def cmd_eval_edit(a) -> int:
     clf = load_classifier(a.classifier)
     clf.meta["path"] = str(a.classifier)
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device)
+    apply_sampling(pipe, a)
     results = run_edit_benchmark(pipe, clf, cases, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                                  scales=scales, seed_base=a.seed, progress=lambda m: print(m, flush=True),
                                  suite=a.suite)
@@ -236,6 +238,7 @@ def cmd_eval_fidelity(a) -> int:
         clf = load_classifier(a.classifier)
         clf.meta["path"] = str(a.classifier)
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device)
+    apply_sampling(pipe, a)
     bar, update = progress_bar("generating")
     results = evaluate_fidelity(pipe, a.data, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                                 classes=classes, split=a.split, classifier=clf, progress=update, length=a.length,
@@ -273,6 +276,7 @@ def cmd_eval_length(a) -> int:
     from ..pipeline import load_pipeline
 
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device_of(a))
+    apply_sampling(pipe, a)
     ds = MotionDataset(a.data, a.split, min_frames=MIN_FRAMES, max_frames=10 ** 9)
     labels = read_labels(a.data) if (Path(a.data) / "labels.json").is_file() else None
     bar, update = progress_bar("generating")

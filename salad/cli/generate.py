@@ -1,7 +1,7 @@
 """`salad generate`: text -> motion files."""
 from __future__ import annotations
 
-from .common import add_bvh_units, add_device, add_sampling, device_of, print_warnings, progress_bar
+from .common import add_bvh_units, add_device, add_sampling, apply_sampling, device_of, print_warnings, progress_bar
 
 
 def cmd_generate(a) -> int:
@@ -9,6 +9,7 @@ def cmd_generate(a) -> int:
     from ..pipeline import load_pipeline
     outs = check_output_paths(a.output)
     pipe = load_pipeline(a.model, bf16=not a.fp32, device=device_of(a))
+    apply_sampling(pipe, a)
     bar, update = progress_bar("sampling")
     motions = pipe.generate(a.prompt, seconds=a.seconds, seed=a.seed, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                             batch=a.batch, progress=update, foot_lock=not a.no_foot_lock)

@@ -17,7 +17,7 @@ from typing import Callable
 
 import torch
 
-from .sampling import ModelFn
+from .sampling import ModelFn, fresh_noise
 from .schedule import CONSISTENCY_GRID, NoiseSchedule
 
 
@@ -65,20 +65,13 @@ def consistency_sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSched
     sched = schedule.sampler("consistency", steps)
     ts = [int(t) for t in sched.timesteps]
     x = noise
-    shape = (1,) + tuple(x.shape[1:]) if shared_noise else tuple(x.shape)
     for i, t in enumerate(ts):
         tt = torch.full((x.shape[0],), t, dtype=torch.long, device=x.device)
         x0 = consistency_fn(schedule, x, model(x, tt).float(), tt)
         if on_clean is not None:
             x0 = on_clean(t, x0)
         if i + 1 < len(ts):
-            # drawn where `generator` lives (the CPU), so a seed gives the same motion on every device
-            if isinstance(generator, list):
-                fresh = torch.cat([torch.randn((1,) + shape[1:], generator=g, dtype=x.dtype) for g in generator])
-            else:
-                fresh = torch.randn(shape, generator=generator, dtype=x.dtype)
-            fresh = fresh.to(x.device).expand_as(x)
-            x = schedule.add_noise(x0, fresh, torch.full_like(tt, ts[i + 1]))
+            x = schedule.add_noise(x0, fresh_noise(x, generator, shared_noise), torch.full_like(tt, ts[i + 1]))
         else:
             x = x0
         if on_step is not None:

@@ -12,32 +12,71 @@ from .schedule import NoiseSchedule
 ModelFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 
-def cfg_combine(out: torch.Tensor, scale: float) -> torch.Tensor:
-    """The batched forward's rows are [unconditional..., conditional...]; mix them."""
+def cfg_combine(out: torch.Tensor, scale: float, rescale: float = 0.0) -> torch.Tensor:
+    """The batched forward's rows are [unconditional..., conditional...]; mix them.
+    rescale (phi, Lin et al. 2024) pulls each guided row's standard deviation towards its
+    conditional row's: a large scale inflates the prediction, which averages gait phases."""
     uncond, cond = out.chunk(2, dim=0)
     if scale == 1.0:
         return cond
-    return uncond + scale * (cond - uncond)
+    guided = uncond + scale * (cond - uncond)
+    if rescale > 0:
+        dims = tuple(range(1, out.ndim))
+        matched = guided * (cond.std(dims, keepdim=True) / guided.std(dims, keepdim=True).clamp_min(1e-8))
+        guided = rescale * matched + (1 - rescale) * guided
+    return guided
+
+
+def describe_settings(settings: dict) -> str:
+    """Reports' words for a run's ddim_eta and cfg_rescale (absent: the run predates them, eta 0 and
+    plain guidance), e.g. " (eta 1, CFG rescale 0.7)"; "" for the consistency sampler."""
+    if settings.get("sampler") == "consistency":
+        return ""
+    parts = [f"eta {settings.get('ddim_eta', 0.0):g}"] if settings.get("sampler", "ddim") == "ddim" else []
+    parts.append(f"CFG rescale {settings.get('cfg_rescale', 0.0):g}")
+    return f" ({', '.join(parts)})"
+
+
+def fresh_noise(x: torch.Tensor, generator: torch.Generator | list[torch.Generator] | None,
+                shared: bool = False) -> torch.Tensor:
+    """Standard normal noise shaped like x, drawn on the CPU so that a seed gives the same motion
+    on every device. generator: one for all rows, or one per row (each row then draws exactly
+    as it would alone); shared gives every row the same draw (edit branches from one z_T)."""
+    shape = (1,) + tuple(x.shape[1:]) if shared else tuple(x.shape)
+    if isinstance(generator, list):
+        fresh = torch.cat([torch.randn((1,) + shape[1:], generator=g, dtype=x.dtype) for g in generator])
+    else:
+        fresh = torch.randn(shape, generator=generator, dtype=x.dtype)
+    return fresh.to(x.device).expand_as(x)
 
 
 @torch.no_grad()
 def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler: str = "ddim", steps: int = 50,
            cfg_scale: float = 7.5, on_step: Callable[[int, int, torch.Tensor], None] | None = None,
-           blend: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
+           blend: Callable[[torch.Tensor], torch.Tensor] | None = None, eta: float = 0.0, cfg_rescale: float = 0.0,
+           generator: torch.Generator | list[torch.Generator] | None = None,
+           shared_noise: bool = False) -> torch.Tensor:
     """Denoise `noise` (B, ...) to clean latents.
 
     `model` receives 2B rows (unconditional rows first, then conditional ones) so that
     classifier-free guidance costs a single forward per step. `blend(x)` may change the
     latents after each step (an edit's held body parts); `on_step(i, n, x)` reports progress.
+    eta > 0 ("ddim" only; 1 = ancestral) adds fresh noise at each step, drawn as fresh_noise
+    draws it from `generator` (shared_noise: one draw for every row).
     """
+    if eta < 0 or (eta > 0 and sampler != "ddim"):
+        raise ValueError(f"eta must be >= 0 and needs the ddim sampler, got eta={eta} with {sampler!r}")
     sched = schedule.sampler(sampler, steps)
     x = noise
     timesteps = sched.timesteps
     for i, t in enumerate(timesteps):
         tt = torch.full((2 * x.shape[0],), int(t), dtype=torch.long, device=x.device)
         out = model(torch.cat((x, x), dim=0), tt)
-        out = cfg_combine(out.float(), cfg_scale)
-        x = sched.step(out, t, x).prev_sample
+        out = cfg_combine(out.float(), cfg_scale, cfg_rescale)
+        if eta > 0:
+            x = sched.step(out, t, x, eta=eta, variance_noise=fresh_noise(x, generator, shared_noise)).prev_sample
+        else:
+            x = sched.step(out, t, x).prev_sample
         if blend is not None:
             x = blend(x)
         if on_step is not None:

@@ -252,7 +252,8 @@ def run_edit_benchmark(pipe, classifier, cases: Sequence[EditCase] | None = None
     records = [_record(c, seed, frames_of[c.name], motions, described, scales) for c in cases for seed in seed_list]
 
     settings = {"model": getattr(pipe, "source", ""), "classifier": getattr(classifier, "meta", {}).get("path", ""),
-                "suite": suite, "seeds": seed_list, **sampling, "scales": list(scales), "frames": frames_of,
+                "suite": suite, "seeds": seed_list, **sampling, **pipe.sampler_settings(sampler), "scales": list(scales),
+                "frames": frames_of,
                 "edit_defaults": _edit_defaults(edits), "held": _held_parts(edits)}
     results = {"settings": settings, "cases": [_case_dict(c) for c in cases], "records": records}
     results.update(summarize(cases, records, scales))

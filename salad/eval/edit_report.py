@@ -13,6 +13,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..files import atomic_write_text
+from ..diffusion.sampling import describe_settings
 from .edit_suite import REWEIGHT_BOUNDS, TARGET_HEIGHT_SLACK
 from .metrics import mean_ci
 
@@ -196,7 +197,7 @@ def format_report(results: dict[str, Any]) -> str:
     lines = ["# Editing benchmark", "",
              f"Model `{s['model']}`, classifier `{s['classifier']}`; suite {s.get('suite', 'tuned')}; seeds "
              f"{s['seeds']}, {s['steps']} {s['sampler']} "
-             f"steps, CFG {s['cfg']:g}; {t.get('edit_calls', '?')} edits and {t.get('baseline_motions', '?')} baseline "
+             f"steps{describe_settings(s)}, CFG {s['cfg']:g}; {t.get('edit_calls', '?')} edits and {t.get('baseline_motions', '?')} baseline "
              f"generations in {t.get('total', '?')} s. Values are mean ± 95% CI (1.96·std/√n) over cases × "
              "seeds.", ""]
     if results.get("summary"):

@@ -29,6 +29,7 @@ from ..motion.cleanup import clean_motion
 from ..motion.representation import FPS, features_to_joints
 from . import physics
 from ..data.labels import read_labels
+from ..diffusion.sampling import describe_settings
 from .paraphrases import PROMPT_SETS
 
 MIN_REFERENCE = 4
@@ -255,7 +256,8 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | 
                 sample["classified_as"] = content
         rows.append(row)
     return {"rows": rows, "rules": RULES, "settings": {
-        "seeds": seeds, "steps": steps, "cfg": cfg, "sampler": sampler, "split": split, "model": _shown(pipe.source),
+        "seeds": seeds, "steps": steps, "cfg": cfg, "sampler": sampler, **pipe.sampler_settings(sampler),
+        "split": split, "model": _shown(pipe.source),
         "length": length, "prompt_set": prompt_set, "seconds": round(time.perf_counter() - started, 1)},
         "summary": summary(rows, classifier)}
 
@@ -298,7 +300,7 @@ def report_markdown(results: dict) -> str:
     lines = ["# Fidelity per class", "",
              f"Model `{s['model']}`; held-out paraphrases (set {s.get('prompt_set', 'a')}) × {s['seeds']} seeds, "
              f"{'the length prior' if s.get('length') == 'prior' else 'auto length'}, {s['sampler']} "
-             f"{s['steps']} steps, CFG {s['cfg']}; reference: real clips of the class in the prompt's style "
+             f"{s['steps']} steps{describe_settings(s)}, CFG {s['cfg']}; reference: real clips of the class in the prompt's style "
              f"({UNSTYLED} where it names none) from the {s['split']} split, widened to all splits, then all "
              f"styles, where fewer than {MIN_REFERENCE} are found (in brackets). Cells: generated median / real median; "
              "✗ marks a failed check; side: share of motions acting with the real clips' hand.", "",

@@ -30,7 +30,7 @@ class ModelGenerator:
                     digest.update(t.detach().float().cpu().numpy().tobytes())
             self._weights = digest.hexdigest()
         return {"weights_sha256": self._weights, "bf16": self.pipe.bf16, "steps": self.steps,
-                "sampler": self.sampler, "cfg": self.cfg, "seed": self.seed}
+                "sampler": self.sampler, "cfg": self.cfg, "seed": self.seed, **self.pipe.sampler_settings(self.sampler)}
 
     def __call__(self, captions: list[str], lengths: list[int]) -> list[np.ndarray]:
         self.calls += 1

@@ -31,6 +31,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from ..files import atomic_write_text
+from ..diffusion.sampling import describe_settings
 from ..data.dataset import MotionDataset
 from ..motion.representation import FEATURE_DIM
 from .metrics import (diversity, frechet_distance, gaussian_stats, matching_distance, mean_ci, multimodality,
@@ -273,7 +274,7 @@ def write_report(results: Mapping[str, Any], out_dir: str | Path, title: str = "
     for name, r in rows.items():
         g = r.get("generator")
         if g and "sampler" in g:
-            notes.append(f"{name}: {g['sampler']} sampler, {g['steps']} steps, CFG {g['cfg']:g}, "
+            notes.append(f"{name}: {g['sampler']} sampler{describe_settings(g)}, {g['steps']} steps, CFG {g['cfg']:g}, "
                          f"{'bf16' if g.get('bf16') else 'fp32'}, seed {g['seed']}.")
     path = out / "report.md"
     atomic_write_text(path, "\n".join(notes) + "\n")
