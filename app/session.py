@@ -65,9 +65,7 @@ class Result:
         finally:
             with self._lock:
                 self._making -= 1
-                remove = self._retired and not self._making
-            if remove:
-                shutil.rmtree(self.folder, ignore_errors=True)
+            self._remove_if_retired_and_idle()
         with self._lock:
             self._cache[key] = value
             while len(self._cache) > CACHE_ENTRIES:
@@ -78,7 +76,11 @@ class Result:
         """Give up the result: its folder goes now, or when the last render into it ends."""
         with self._lock:
             self._retired = True
-            remove = not self._making
+        self._remove_if_retired_and_idle()
+
+    def _remove_if_retired_and_idle(self) -> None:
+        with self._lock:
+            remove = self._retired and not self._making
         if remove:
             shutil.rmtree(self.folder, ignore_errors=True)
 
