@@ -265,8 +265,8 @@ def test_time_travel_noise_shared_across_rows_and_model_hook():
 @contextlib.contextmanager
 def deterministic_ddim(pipe):
     """Guided control samples with the deterministic DDIM and plain guidance: plain runs to compare with."""
-    kept = pipe.ddim_eta, pipe.cfg_rescale
-    pipe.set_sampling(ddim_eta=0.0, cfg_rescale=0.0)
+    kept = pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff
+    pipe.set_sampling(ddim_eta=0.0, cfg_rescale=0.0, cfg_cutoff=0.0)
     try:
         yield pipe
     finally:

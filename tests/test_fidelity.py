@@ -7,8 +7,8 @@ from conftest import synthetic_walk, write_tiny_dataset
 from salad.data.captions import CONTENT_PHRASES, STYLE_PHRASES, caption_variants
 from salad.eval import EMBEDDED_CLASSIFIER
 from salad.eval.classifiers import load_classifier
-from salad.eval.fidelity import (RULES, checks_for, evaluate_fidelity, fidelity_classes, judge, measure,
-                                 report_markdown)
+from salad.eval.fidelity import (RULES, checks_for, evaluate_fidelity, fidelity_classes, judge, measure, named_side,
+                                 rejudge, report_markdown)
 from salad.eval.paraphrases import HELD_OUT, PROMPT_SETS
 from salad.pipeline import load_pipeline
 
@@ -61,6 +61,22 @@ def test_rules_pass_and_fail_where_stated():
     assert judge("side", real, sides)["pass"] and not judge("side", real, sides[1:])["pass"]
 
 
+def test_the_side_check_asks_for_the_hand_the_prompt_names():
+    assert named_side("someone waves the Right hand to part") == "right"
+    assert named_side("a person waves goodbye using both arms") == named_side("says goodbye waving two hands") == "both"
+    assert named_side("a person waves") is None and named_side("from the left hand to the right") is None
+    # a class whose captures come with their mirror images: as many left-handed real clips as right
+    mirrored = [{"side": "left"}, {"side": "right"}] * 2
+    right = [{"side": "right"}] * 3
+    asked = judge("side", mirrored, right, sides=["right"] * 3)
+    assert asked["pass"] and asked["real"] == "right"
+    assert not judge("side", mirrored, right, sides=["left"] * 3)["pass"]
+    # a prompt that names no hand is held to the real clips' majority
+    lefty = [{"side": "left"}] * 3
+    assert not judge("side", lefty, right, sides=[None] * 3)["pass"]
+    assert judge("side", lefty, [{"side": "left"}] * 3, sides=[None] * 3)["pass"]
+
+
 @pytest.mark.slow
 def _walks_labelled(tmp_path):
     """The tiny dataset with every motion labelled a normal walk."""
@@ -93,6 +109,9 @@ def test_a_fidelity_run_with_the_embedded_model(tmp_path):
     assert res["summary"]["classified"]["content_correct"] == got["content_correct"]
     assert res["summary"]["classified"]["share"] == pytest.approx(got["content_correct"] / got["total"], abs=1e-4)
     json.dumps(res)                                                     # results.json holds all of it
+    # judged again from the stored measures alone, the table comes out the same
+    again = rejudge(json.loads(json.dumps(res)))
+    assert again["rows"] == res["rows"] and again["summary"] == res["summary"]
     report = report_markdown(res)
     assert "| walk | 12 (all) |" in report and "after the foot lock" in report
     assert f"{got['content_correct']}/{got['total']} |" in report and "in the prompt's action" in report
@@ -135,3 +154,35 @@ def test_a_fidelity_run_with_the_length_prior_generates_at_the_priors_length(tmp
     (row,) = res["rows"]
     assert sorted(s["frames"] for s in row["samples"]) == sorted(pipe.frames_for("prior", p) for p in HELD_OUT["walk"])
     assert res["settings"]["length"] == "prior" and "the length prior" in report_markdown(res)
+
+
+def _stored_bye_run(side: str) -> dict:
+    """A stored run of one mirrored hand class, judged under an older rule (the real clips' majority)."""
+    real = {"duration_s": 5.0, "root_speed_mps": 0.05, "hand_height_m": 0.8, "jerk_mps3": 8.0,
+            "contact_slide_share": 0.1}
+    refs = [{**real, "side": s} for s in ("left", "right", "left", "right")]
+    samples = [{"prompt": "someone waves the right hand to part", "seed": i, "frames": 100,
+                "raw": {**real, "side": side}, "clean": {**real, "side": side}} for i in range(3)]
+    row = {"class": "bye", "reference": {"clips": 4, "splits": "test", "measures": refs}, "samples": samples,
+           "raw": {"pass": False}, "clean": {"pass": False}}
+    settings = {"seeds": 3, "steps": 50, "cfg": 7.5, "sampler": "ddim", "split": "test", "model": "m"}
+    return {"rows": [row], "rules": {}, "settings": settings,
+            "summary": {"raw": {"passed": 0, "classes": 1}, "clean": {"passed": 0, "classes": 1}}}
+
+
+def test_a_stored_run_is_judged_again_from_its_measures(tmp_path, capsys):
+    from salad.cli import main
+    for side, passes in (("right", True), ("left", False)):
+        src = tmp_path / side
+        src.mkdir()
+        (src / "results.json").write_text(json.dumps(_stored_bye_run(side)))
+        assert main(["eval-fidelity", "--rejudge", str(src), "--out", str(tmp_path / f"{side}-out")]) == 0
+        res = json.loads((tmp_path / f"{side}-out" / "results.json").read_text())
+        assert res["rules"] == RULES and res["summary"]["raw"]["passed"] == int(passes)
+        assert res["rows"][0]["raw"]["checks"]["side"]["real"] == "right"
+        assert "## raw decoder output" in (tmp_path / f"{side}-out" / "report.md").read_text()
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "results.json").write_text("{}")
+    assert main(["eval-fidelity", "--rejudge", str(tmp_path / "broken")]) == 2
+    assert "not a readable eval-fidelity result" in capsys.readouterr().err
+    assert main(["eval-fidelity", "--out", str(tmp_path / "x")]) == 2           # nothing to judge, no data

@@ -224,6 +224,25 @@ def test_stochastic_ddim_is_seeded_shares_noise_across_branches_and_needs_ddim()
         sample(model, noise, s, sampler="dpm", steps=8, eta=1.0)
 
 
+def test_guidance_stops_below_the_cutoff():
+    s = NoiseSchedule()
+
+    def model(x, t):                        # unconditional rows predict 0, conditional ones 1
+        half = x.shape[0] // 2
+        return torch.cat((torch.zeros_like(x[:half]), torch.ones_like(x[half:])))
+    noise = torch.randn(2, 3, 4, generator=torch.Generator().manual_seed(0))
+    got = sample(model, noise, s, steps=10, cfg_scale=7.5, cfg_cutoff=0.3)
+    # by hand: guided 0 + 7.5 x (1 - 0) at t = 999 ... 399, the conditional 1 alone at 299 ... 99
+    sched = s.sampler("ddim", 10)
+    x = noise
+    for t in sched.timesteps:
+        x = sched.step(torch.full_like(x, 1.0 if int(t) < 300 else 7.5), t, x).prev_sample
+    torch.testing.assert_close(got, x)
+    assert not torch.allclose(sample(model, noise, s, steps=10, cfg_scale=7.5), got)
+    with pytest.raises(ValueError, match="cfg_cutoff must be in"):
+        sample(model, noise, s, steps=4, cfg_cutoff=1.0)
+
+
 def test_cfg_rescale_matches_the_conditional_rows_spread():
     uncond, cond = torch.randn(2, 5, 7, 4), 3 * torch.randn(2, 5, 7, 4)
     out = torch.cat((uncond, cond))

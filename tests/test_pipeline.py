@@ -101,7 +101,7 @@ def test_generate_batch_with_mixed_lengths(tiny_model):
 
 def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tiny_model):
     pipe = load_pipeline(tiny_model)
-    assert (pipe.ddim_eta, pipe.cfg_rescale) == (1.0, 0.7)              # the defaults the model card measures
+    assert (pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff) == (1.0, 0.7, 0.3)   # the defaults the model card measures
     walk = dict(seconds=1.6, seed=4, steps=6, foot_lock=False)
     a, b = pipe.generate("a person walks forward", **walk), pipe.generate("a person walks forward", **walk)
     np.testing.assert_array_equal(a.joints, b.joints)                  # a seed still gives one motion
@@ -114,6 +114,8 @@ def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tin
     for bad in ({"ddim_eta": 1.5}, {"ddim_eta": -0.1}, {"cfg_rescale": float("nan")}, {"cfg_rescale": "high"}):
         with pytest.raises(ValueError, match="must be a number in \\[0, 1\\]"):
             pipe.set_sampling(**bad)
+    with pytest.raises(ValueError, match="cfg_cutoff must be a number in \\[0, 0.99\\]"):
+        pipe.set_sampling(ddim_eta=1.0, cfg_cutoff=1.0)
     assert (pipe.ddim_eta, pipe.cfg_rescale) == (0.0, 0.0)              # a refused setting changes nothing
     out = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "a person walks", "--model", str(tiny_model),
                           "--ddim-eta", "2", "-o", "/tmp/never.npy"], cwd=REPO, capture_output=True, text=True,

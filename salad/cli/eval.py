@@ -14,7 +14,7 @@ from ..eval.classifiers import load_classifier
 from ..eval.control_bench import OMNICONTROL_JOINTS, evaluate_control, parse_density, parse_joints, write_control_report
 from ..eval.edit_bench import run_edit_benchmark
 from ..eval.edit_suite import DEFAULT_SCALES, MODES, SUITES, default_suite
-from ..eval.fidelity import evaluate_fidelity, fidelity_classes, report_markdown
+from ..eval.fidelity import evaluate_fidelity, fidelity_classes, rejudge, report_markdown
 from ..eval.length_dist import DEFAULT_BIN_FRAMES, MIN_FRAMES, evaluate_lengths, write_length_report
 from ..eval.paraphrases import PROMPT_SETS
 from ..eval.real_edit_bench import SDEDIT_STRENGTHS, run_real_edit_bench
@@ -204,8 +204,11 @@ def cmd_eval_edit(a) -> int:
 def add_eval_fidelity(sub) -> None:
     """Register `salad eval-fidelity` on the CLI's subparsers."""
     p = sub.add_parser("eval-fidelity", help="per-class fidelity of held-out paraphrases against real clips")
-    p.add_argument("--data", required=True, help="labelled HumanML3D-layout dataset (labels.json)")
-    p.add_argument("--out", required=True, help="directory for results.json and report.md")
+    p.add_argument("--data", help="labelled HumanML3D-layout dataset (labels.json); required unless --rejudge")
+    p.add_argument("--out", help="directory for results.json and report.md; required unless --rejudge")
+    p.add_argument("--rejudge", metavar="DIR", default=None,
+                   help="judge a stored run (DIR/results.json) again under the current rules from the measures it "
+                        "keeps, generating nothing; writes to --out, or back into DIR")
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--classes", default=None, help="comma list of classes (default: all), e.g. walk,kick")
     p.add_argument("--seeds", type=int, default=3)
@@ -229,6 +232,10 @@ def add_eval_fidelity(sub) -> None:
 def cmd_eval_fidelity(a) -> int:
     from ..pipeline import load_pipeline
 
+    if a.rejudge:
+        return _rejudge_fidelity(Path(a.rejudge), Path(a.out or a.rejudge))
+    if not a.data or not a.out:
+        raise ValueError("eval-fidelity needs --data and --out (or --rejudge DIR)")
     device = device_of(a)
     classes = [c.strip() for c in a.classes.split(",") if c.strip()] if a.classes else None
     fidelity_classes(classes, a.prompt_set)                      # unknown names fail before loading anything
@@ -244,13 +251,26 @@ def cmd_eval_fidelity(a) -> int:
                                 classes=classes, split=a.split, classifier=clf, progress=update, length=a.length,
                                 prompt_set=a.prompt_set)
     bar.close()
-    out = Path(a.out)
+    _write_fidelity(results, Path(a.out))
+    return 0
+
+
+def _rejudge_fidelity(src: Path, out: Path) -> int:
+    try:
+        stored = json.loads((src / "results.json").read_text())
+        results = rejudge(stored)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{src / 'results.json'} is not a readable eval-fidelity result: {e}") from None
+    _write_fidelity(results, out)
+    return 0
+
+
+def _write_fidelity(results: dict, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2))
     report = report_markdown(results)
     atomic_write_text(out / "report.md", report)
     print(report)
-    return 0
 
 
 def add_eval_length(sub) -> None:

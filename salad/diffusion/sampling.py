@@ -28,12 +28,15 @@ def cfg_combine(out: torch.Tensor, scale: float, rescale: float = 0.0) -> torch.
 
 
 def describe_settings(settings: dict) -> str:
-    """Reports' words for a run's ddim_eta and cfg_rescale (absent: the run predates them, eta 0 and
-    plain guidance), e.g. " (eta 1, CFG rescale 0.7)"; "" for the consistency sampler."""
+    """Reports' words for a run's ddim_eta, cfg_rescale and cfg_cutoff (absent: the run predates them,
+    eta 0, plain guidance at every step), e.g. " (eta 1, CFG rescale 0.7, no guidance below t = 300)";
+    "" for the consistency sampler."""
     if settings.get("sampler") == "consistency":
         return ""
     parts = [f"eta {settings.get('ddim_eta', 0.0):g}"] if settings.get("sampler", "ddim") == "ddim" else []
     parts.append(f"CFG rescale {settings.get('cfg_rescale', 0.0):g}")
+    if settings.get("cfg_cutoff", 0.0) > 0:
+        parts.append(f"no guidance below t = {settings['cfg_cutoff'] * 1000:g}")
     return f" ({', '.join(parts)})"
 
 
@@ -55,7 +58,7 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
            cfg_scale: float = 7.5, on_step: Callable[[int, int, torch.Tensor], None] | None = None,
            blend: Callable[[torch.Tensor], torch.Tensor] | None = None, eta: float = 0.0, cfg_rescale: float = 0.0,
            generator: torch.Generator | list[torch.Generator] | None = None,
-           shared_noise: bool = False) -> torch.Tensor:
+           shared_noise: bool = False, cfg_cutoff: float = 0.0) -> torch.Tensor:
     """Denoise `noise` (B, ...) to clean latents.
 
     `model` receives 2B rows (unconditional rows first, then conditional ones) so that
@@ -63,16 +66,21 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
     latents after each step (an edit's held body parts); `on_step(i, n, x)` reports progress.
     eta > 0 ("ddim" only; 1 = ancestral) adds fresh noise at each step, drawn as fresh_noise
     draws it from `generator` (shared_noise: one draw for every row).
+    Steps at t < cfg_cutoff x T take the conditional prediction alone: by then the action is laid
+    down, and guidance only exaggerates detail (feet that slide, then jerk).
     """
     if eta < 0 or (eta > 0 and sampler != "ddim"):
         raise ValueError(f"eta must be >= 0 and needs the ddim sampler, got eta={eta} with {sampler!r}")
+    if not 0.0 <= cfg_cutoff < 1.0:
+        raise ValueError(f"cfg_cutoff must be in [0, 1), got {cfg_cutoff}")
     sched = schedule.sampler(sampler, steps)
+    unguided_below = cfg_cutoff * schedule.config.train_steps
     x = noise
     timesteps = sched.timesteps
     for i, t in enumerate(timesteps):
         tt = torch.full((2 * x.shape[0],), int(t), dtype=torch.long, device=x.device)
         out = model(torch.cat((x, x), dim=0), tt)
-        out = cfg_combine(out.float(), cfg_scale, cfg_rescale)
+        out = cfg_combine(out.float(), 1.0 if int(t) < unguided_below else cfg_scale, cfg_rescale)
         if eta > 0:
             x = sched.step(out, t, x, eta=eta, variance_noise=fresh_noise(x, generator, shared_noise)).prev_sample
         else:
