@@ -67,7 +67,7 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
     eta > 0 ("ddim" only; 1 = ancestral) adds fresh noise at each step, drawn as fresh_noise
     draws it from `generator` (shared_noise: one draw for every row).
     Steps at t < cfg_cutoff x T take the conditional prediction alone: by then the action is laid
-    down, and guidance only exaggerates detail (feet that slide, then jerk).
+    down, and guidance there mostly made the feet slide.
     """
     if eta < 0 or (eta > 0 and sampler != "ddim"):
         raise ValueError(f"eta must be >= 0 and needs the ddim sampler, got eta={eta} with {sampler!r}")
