@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from salad.data import captions as cap
-from salad.data.build import SPLIT_PATTERN, Clip, assign_splits, build_bandai, dataset_stats
+from salad.data.build import SPLIT_PATTERN, Clip, assign_splits, build_bandai, cut_off_takes, dataset_stats
 from salad.data.dataset import (DatasetError, MotionDataset, WindowSampler, collate_motions, parse_caption_line)
 from salad.motion import representation as rep
 
@@ -62,6 +62,20 @@ def test_splits_are_stratified_and_fixed():
     for offset in range(len(SPLIT_PATTERN)):
         rare = [Clip(f"pad{i}", Path("x"), 1, "bow", "a") for i in range(offset)] + [Clip("k", Path("x"), 1, "kick", "a")]
         assert assign_splits(rare, seed=0)["k"] == "train"
+
+
+def test_a_take_far_shorter_than_its_actions_others_is_cut_off():
+    styles = ("normal", "angry", "happy", "old", "sad")
+    walks_back = [Clip(f"b1_walk-back_{s}_001", Path(f"{s}.bvh"), 1, "walk-back", s) for s in styles]
+    frames = dict(zip((c.name for c in walks_back), (20, 137, 170, 159, 260)))
+    cut = cut_off_takes(walks_back, frames)
+    assert list(cut) == ["b1_walk-back_normal_001"] and "cut off (20 frames" in cut["b1_walk-back_normal_001"]
+    # a short action is judged against its own takes, and three takes are too few for a median
+    kicks = [Clip(f"k{i}", Path("k.bvh"), 1, "kick", "normal") for i in range(3)]
+    frames.update({"k0": 20, "k1": 200, "k2": 210})
+    raises = [Clip(f"r{i}", Path("r.bvh"), 1, "raise", "normal") for i in range(4)]
+    frames.update({f"r{i}": 30 + i for i in range(4)})
+    assert list(cut_off_takes(walks_back + kicks + raises, frames)) == ["b1_walk-back_normal_001"]
 
 
 def test_loader_batches_windows_and_subclips(tiny_dataset, tmp_path):

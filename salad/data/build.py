@@ -43,6 +43,11 @@ SPLIT_PATTERN = "TTTXTTTTTTXTTTVTTXTT"   # 16 train, 1 val, 3 test in every 20 c
 SPLIT_NAMES = {"T": "train", "V": "val", "X": "test"}
 MIN_FRAMES = 16                          # 0.8 s at 20 fps
 CAPTIONS_PER_CLIP = 12  # varied verb phrases, word orders and manner words per motion (paraphrases understood)
+# A take under this share of the median length of its action's takes (with at least CUT_OFF_MIN_TAKES
+# of them to take a median over) was cut off early: the only unstyled walk-back take is 1 s where the
+# styled ones run 6-13 s, and trained on, it taught the plain "walks backward" prompt a 1 s motion.
+CUT_OFF_SHARE = 0.25
+CUT_OFF_MIN_TAKES = 4
 
 
 class BuildError(RuntimeError):
@@ -316,6 +321,21 @@ def finish_build(work: Path, out: Path, texts: dict[str, list[str]], splits: dic
     return report
 
 
+def cut_off_takes(clips: list[Clip], frames: dict[str, int]) -> dict[str, str]:
+    """Clips (name -> why) far shorter than the other takes of their action (CUT_OFF_SHARE)."""
+    by_content: dict[str, list[int]] = defaultdict(list)
+    for c in clips:
+        by_content[c.content].append(frames[c.name])
+    out = {}
+    for c in clips:
+        takes = by_content[c.content]
+        median = float(np.median(takes))
+        if len(takes) >= CUT_OFF_MIN_TAKES and frames[c.name] < CUT_OFF_SHARE * median:
+            out[c.name] = (f"{c.path}: cut off ({frames[c.name]} frames where the {len(takes)} takes of "
+                           f"{c.content} have a median of {median:.0f})")
+    return out
+
+
 # ---------------------------------------------------------------- Bandai
 
 def build_bandai(source: str | Path, out: str | Path, workers: int = 2, seed: int = 0,
@@ -347,6 +367,14 @@ def build_bandai(source: str | Path, out: str | Path, workers: int = 2, seed: in
         shutil.rmtree(work, ignore_errors=True)  # nothing worth resuming
         raise BuildError(f"{source}: no clip could be imported; first problems: "
                          + "; ".join(list(conv.skipped.values())[:3]))
+    cut = cut_off_takes(good, {c.name: np.load(work / "new_joint_vecs" / f"{c.name}.npy", mmap_mode="r").shape[0]
+                               for c in good})
+    for name in cut:
+        for sub in ("new_joint_vecs", "new_joints"):
+            for prefix in ("", "M"):
+                (work / sub / f"{prefix}{name}.npy").unlink(missing_ok=True)
+    conv.skipped.update(cut)
+    good = [c for c in good if c.name not in cut]
     splits = assign_splits(good, seed)
     labels, texts = {}, {}
     for c in good:
