@@ -44,7 +44,7 @@ DEFAULT_STEPS = {"ddim": 50, "dpm": 50, "consistency": 4}
 # The teacher's sampling: DDIM with fresh noise at every step (eta = 1) and guidance rescaled
 # halfway to the conditional prediction's scale. The deterministic DDIM (eta = 0) blurs gait
 # phases: on the embedded model its walks kept a foot still in 0.62 of their frames against
-# 0.71 at eta = 1 and 0.72-0.76 with the rescale (model card, *Sampling*).
+# 0.71 at eta = 1 and 0.72-0.76 with the rescale (model card, *Ancestral sampling*; the cutoff below: *Guidance cutoff*).
 DDIM_ETA = 1.0
 CFG_RESCALE = 0.7
 # Guidance stops below t = 300 of 1000 (the last 15 of 50 DDIM steps take the conditional prediction
