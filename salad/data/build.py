@@ -374,8 +374,9 @@ def build_bandai(source: str | Path, out: str | Path, workers: int = 2, seed: in
             for prefix in ("", "M"):
                 (work / sub / f"{prefix}{name}.npy").unlink(missing_ok=True)
     conv.skipped.update(cut)
-    good = [c for c in good if c.name not in cut]
+    # dealt before the cut, so dropping a take leaves every other clip in the split it had
     splits = assign_splits(good, seed)
+    good = [c for c in good if c.name not in cut]
     labels, texts = {}, {}
     for c in good:
         for prefix in ("", "M"):
