@@ -499,12 +499,34 @@ def _bundle_config(tiny_dataset, tiny_model, out, max_frames=80, bundle=""):
         run=RunConfig(out_dir=str(out), bf16=False, checkpoint_every=2), vae=str(tiny_model / "vae"))
 
 
+def test_fixed_length_batches_come_in_a_few_masked_shapes(tiny_model, tiny_dataset, tmp_path):
+    from salad.training.denoiser_task import FRAME_BUCKET, TOKEN_BUCKET, DenoiserTask
+
+    cfg = _bundle_config(tiny_dataset, tiny_model, tmp_path / "a")
+    cfg.auto_length_prob = 0.0
+    task = DenoiserTask(cfg, show_progress=False)
+    rng = np.random.default_rng(3)
+    for _ in range(12):
+        b = task.batch(rng)
+        frames, tokens = 4 * b["latents"].shape[1], b["text"].shape[1]
+        assert frames % FRAME_BUCKET == 0 or frames == task.canvas
+        assert tokens % TOKEN_BUCKET == 0
+        # the padding is masked, and no bucket is wider than the longest row needs
+        used = b["frame_mask"].sum(1)
+        assert 4 * int(used.max()) > frames - FRAME_BUCKET
+        assert int(torch.count_nonzero(b["latents"][~b["frame_mask"]])) == 0
+        words = b["text_mask"].sum(1)
+        assert tokens - TOKEN_BUCKET < int(words.max()) <= tokens
+        assert int(torch.count_nonzero(b["text"][~b["text_mask"]])) == 0
+
+
 def test_a_latent_bundle_trains_on_the_batches_the_dataset_gives(tiny_model, tiny_dataset, tmp_path):
     from salad.training.denoiser_task import DenoiserTask
     from salad.training.latent_bundle import write_bundle
 
     source = DenoiserTask(_bundle_config(tiny_dataset, tiny_model, tmp_path / "a"), show_progress=False)
-    part = 48 * 1024
+    part = 8 * 1024
+    assert source.text.pooled.numel() * 4 > 2 * part       # the sentence features too span several parts
     out = write_bundle(source, tmp_path / "bundle", part_bytes=part, progress=False)
     files = sorted(out.glob("part-*.safetensors"))
     assert len(files) > 1 and all(f.stat().st_size <= part for f in files)

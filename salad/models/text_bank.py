@@ -50,17 +50,18 @@ class TextBank:
         """(token rows, caption lengths, pooled features): what from_tensors takes with the captions."""
         return self.flat, self.lengths, self.pooled
 
-    def gather(self, indices: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, L, dim) float32 tokens, zero past each caption's end, and the (B, L) validity mask."""
+    def gather(self, indices: Sequence[int], multiple: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, L, dim) float32 tokens, zero past each caption's end, and the (B, L) validity mask;
+        L is the longest caption's length rounded up to a `multiple`."""
         idx = torch.as_tensor(indices, dtype=torch.long)
         n = self.lengths[idx]
-        pos = torch.arange(int(n.max()))
+        pos = torch.arange(-(-int(n.max()) // multiple) * multiple)
         mask = pos[None, :] < n[:, None]
         rows = (self.offsets[idx][:, None] + pos[None, :]).clamp(max=len(self.flat) - 1)
         return self.flat[rows].float() * mask[..., None], mask
 
-    def batch(self, captions: Sequence[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Tokens, mask and pooled sentence features of the given (known) captions."""
+    def batch(self, captions: Sequence[str], multiple: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Tokens, mask and pooled sentence features of the given (known) captions (gather's `multiple`)."""
         ids = [self.index[c] for c in captions]
-        tokens, mask = self.gather(ids)
+        tokens, mask = self.gather(ids, multiple)
         return tokens, mask, self.pooled[ids]

@@ -37,6 +37,10 @@ from .foot_loss import planted_foot_error
 from .latent_bundle import LatentBundle
 
 
+FRAME_BUCKET = 16     # fixed-length batches span a multiple of 16 frames (4 latent frames), masked past the longest
+TOKEN_BUCKET = 8      # and a multiple of 8 caption tokens
+
+
 class DenoiserTraining(nn.Module):
     def __init__(self, denoiser: Denoiser, schedule: NoiseSchedule, min_snr_gamma: float = 0.0):
         super().__init__()
@@ -193,7 +197,9 @@ class DenoiserTask:
         # motion ends in training) on the whole canvas; fixed-length rows then keep only their
         # own latent frames (masked in time), auto-length rows keep the whole canvas.
         frames = np.where(self.lengths[idx] <= self.canvas, self.lengths[idx] // 4 * 4, self.canvas)
-        T = self.canvas if auto else int(frames.max())
+        # Batch shapes come from a few buckets: every new (frames, tokens) shape made the CPU kernels
+        # cache another set of primitives and grew a long run's memory without bound.
+        T = self.canvas if auto else min(self.canvas, -(-int(frames.max()) // FRAME_BUCKET) * FRAME_BUCKET)
         if self.bundle is not None:
             latents, crops = self.bundle.rows(idx, rng) * self.latent_scale, None
         else:
@@ -207,7 +213,7 @@ class DenoiserTask:
         captions = [self.captions[i][int(rng.integers(len(self.captions[i])))] for i in idx]
         drop = rng.random(B) < self.cfg.text_dropout
         captions = ["" if d else c for c, d in zip(captions, drop)]
-        text, text_mask, pooled = self.text.batch(captions)
+        text, text_mask, pooled = self.text.batch(captions, TOKEN_BUCKET)
         g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
         extra = {}
         if self.cfg.contact_loss > 0:

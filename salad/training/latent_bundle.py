@@ -79,17 +79,19 @@ def write_bundle(task, out: str | Path, part_bytes: int, windows: int = 8, progr
     else:
         captions = task.text.captions
         flat, lengths, pooled = task.text.tensors()
-        rows = max(1, min(TEXT_CHUNK_ROWS, (part_bytes - HEADER_BYTES) // (flat.shape[1] * flat.element_size())))
-        for j, s in enumerate(range(0, len(flat), rows)):
-            tensors[f"text.flat.{j}"] = flat[s:s + rows]
-        tensors["text.lengths"], tensors["text.pooled"] = lengths, pooled
+        for name, rows_of in (("flat", flat), ("pooled", pooled)):
+            per_row = rows_of.shape[1] * rows_of.element_size()
+            rows = max(1, min(TEXT_CHUNK_ROWS, (part_bytes - HEADER_BYTES) // per_row))
+            for j, s in enumerate(range(0, len(rows_of), rows)):
+                tensors[f"text.{name}.{j}"] = rows_of[s:s + rows]
+        tensors["text.lengths"] = lengths
 
     parts: dict[str, dict[str, torch.Tensor]] = {}
     size = part_bytes
     for name, t in tensors.items():
         n = t.numel() * t.element_size() + HEADER_BYTES
         if n > part_bytes:
-            raise ValueError(f"{name} alone is {n / 2 ** 20:.1f} MiB, more than a part may hold")
+            raise ValueError(f"{name} alone is {n:,} bytes, more than a part may hold ({part_bytes:,})")
         if size + n > part_bytes:
             parts[f"part-{len(parts)}"] = {}
             size = 0
@@ -139,9 +141,12 @@ class LatentBundle:
             flat, pooled = tower_token_features(t["text.ids"], t["text.lengths"], state, c["text_tower"], device)
             self.text = TextBank.from_tensors(c["text_captions"], flat.to(torch.bfloat16), t["text.lengths"], pooled)
             return
-        chunks = sorted((k for k in t if k.startswith("text.flat.")), key=lambda k: int(k.rsplit(".", 1)[1]))
-        self.text = TextBank.from_tensors(c["text_captions"], torch.cat([t[k] for k in chunks]),
-                                          t["text.lengths"], t["text.pooled"])
+        def joined(name: str) -> torch.Tensor:
+            if f"text.{name}" in t:      # bundles written before the pooled features were chunked
+                return t[f"text.{name}"]
+            chunks = sorted((k for k in t if k.startswith(f"text.{name}.")), key=lambda k: int(k.rsplit(".", 1)[1]))
+            return torch.cat([t[k] for k in chunks])
+        self.text = TextBank.from_tensors(c["text_captions"], joined("flat"), t["text.lengths"], joined("pooled"))
 
     def rows(self, idx: Sequence[int], rng: np.random.Generator) -> torch.Tensor:
         """Posterior means on the canvas of motions `idx`; a motion longer than the canvas gives one
