@@ -196,6 +196,19 @@ class Pipeline:
                 flags = torch.full((x.shape[0],), auto, device=x.device)
                 return self.denoiser(x, t, text.tokens, text.mask, rows_mask, pooled_text=text.pooled,
                                      auto_length=flags).float()
+
+        def conditional(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            b = x.shape[0]
+            with self.autocast():
+                flags = torch.full((b,), auto, device=x.device)
+                return self.denoiser(x, t, text.tokens[b:], text.mask[b:], frame_mask,
+                                     pooled_text=None if text.pooled is None else text.pooled[b:],
+                                     auto_length=flags).float()
+
+        # Unguided steps need the prompts' rows alone, unless an attention controller (an edit, the
+        # explorer's store) is attached: it indexes rows in the full [unconditional, conditional] layout.
+        if all(a.controller is None for a in self.denoiser.attentions()):
+            fn.conditional = conditional
         return fn
 
     def network(self, sampler: str) -> Denoiser:

@@ -243,6 +243,27 @@ def test_guidance_stops_below_the_cutoff():
         sample(model, noise, s, steps=4, cfg_cutoff=1.0)
 
 
+def test_unguided_steps_run_the_conditional_rows_alone_when_the_model_offers_them():
+    s = NoiseSchedule()
+    rows = []
+
+    def model(x, t):
+        rows.append(x.shape[0])
+        half = x.shape[0] // 2
+        return torch.cat((torch.zeros_like(x[:half]), torch.ones_like(x[half:])))
+
+    def conditional(x, t):
+        rows.append(-x.shape[0])
+        return torch.ones_like(x)
+    noise = torch.randn(2, 3, 4, generator=torch.Generator().manual_seed(0))
+    full = sample(model, noise, s, steps=10, cfg_scale=7.5, cfg_rescale=0.7, cfg_cutoff=0.3)
+    assert rows == [4] * 10
+    rows.clear()
+    model.conditional = conditional
+    torch.testing.assert_close(sample(model, noise, s, steps=10, cfg_scale=7.5, cfg_rescale=0.7, cfg_cutoff=0.3), full)
+    assert rows == [4] * 7 + [-2] * 3          # t = 999 ... 399 guided, 299 ... 99 the 2 prompts alone
+
+
 def test_cfg_rescale_matches_the_conditional_rows_spread():
     uncond, cond = torch.randn(2, 5, 7, 4), 3 * torch.randn(2, 5, 7, 4)
     out = torch.cat((uncond, cond))

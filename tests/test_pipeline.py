@@ -99,6 +99,23 @@ def test_generate_batch_with_mixed_lengths(tiny_model):
         pipe.generate_batch(["a person walks"], [30])
 
 
+def test_unguided_steps_skip_the_unconditional_rows_unless_a_controller_watches(tiny_model):
+    pipe = load_pipeline(tiny_model)
+    rows = []
+    hook = pipe.denoiser.register_forward_hook(lambda module, args, out: rows.append(out.shape[0]))
+    walk = dict(seconds=1.6, seed=4, steps=10, foot_lock=False)
+    try:
+        plain = pipe.generate("a person walks forward", **walk)
+        assert rows == [2] * 7 + [1] * 3          # t = 299, 199, 99 are below the 0.3 cutoff
+        rows.clear()
+        watched = pipe.generate("a person walks forward", return_attention=True, **walk)
+        assert rows == [2] * 10                   # the attention store reads the full layout
+    finally:
+        hook.remove()
+    assert watched.attention is not None
+    np.testing.assert_allclose(plain.joints, watched.joints, atol=1e-3)
+
+
 def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tiny_model):
     pipe = load_pipeline(tiny_model)
     assert (pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff) == (1.0, 0.7, 0.3)   # the defaults the model card measures

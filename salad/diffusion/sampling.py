@@ -67,7 +67,8 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
     eta > 0 ("ddim" only; 1 = ancestral) adds fresh noise at each step, drawn as fresh_noise
     draws it from `generator` (shared_noise: one draw for every row).
     Steps at t < cfg_cutoff x T take the conditional prediction alone: by then the action is laid
-    down, and guidance there mostly made the feet slide.
+    down, and guidance there mostly made the feet slide. If `model` has a `conditional` attribute
+    (B rows -> their conditional prediction), those steps run it instead of the 2B-row forward.
     """
     if eta < 0 or (eta > 0 and sampler != "ddim"):
         raise ValueError(f"eta must be >= 0 and needs the ddim sampler, got eta={eta} with {sampler!r}")
@@ -75,12 +76,16 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
         raise ValueError(f"cfg_cutoff must be in [0, 1), got {cfg_cutoff}")
     sched = schedule.sampler(sampler, steps)
     unguided_below = cfg_cutoff * schedule.config.train_steps
+    conditional = getattr(model, "conditional", None)
     x = noise
     timesteps = sched.timesteps
     for i, t in enumerate(timesteps):
         tt = torch.full((2 * x.shape[0],), int(t), dtype=torch.long, device=x.device)
-        out = model(torch.cat((x, x), dim=0), tt)
-        out = cfg_combine(out.float(), 1.0 if int(t) < unguided_below else cfg_scale, cfg_rescale)
+        if int(t) < unguided_below and conditional is not None:
+            out = conditional(x, tt[:x.shape[0]]).float()
+        else:
+            out = model(torch.cat((x, x), dim=0), tt)
+            out = cfg_combine(out.float(), 1.0 if int(t) < unguided_below else cfg_scale, cfg_rescale)
         if eta > 0:
             x = sched.step(out, t, x, eta=eta, variance_noise=fresh_noise(x, generator, shared_noise)).prev_sample
         else:
