@@ -267,8 +267,13 @@ def test_every_edit_mode_shows_source_and_edit_side_by_side(studio_url, page):
 
     # mirroring: the body half defaults to arms and legs
     page.locator("#edit-source textarea").fill("a person waves their left hand")
+    # the picker follows the new source before the mode changes: handled the other way round (a busy
+    # machine may answer the two quick events out of order), it would re-weight 'hand' in mirror mode
+    reweight_word = "document.querySelector('#edit-reweight-word input').value"
+    page.wait_for_function(f"() => {reweight_word} === 'hand'")
     page.locator("#edit-mode label", has_text="mirror").click()
-    page.wait_for_function("() => document.querySelector('#edit-mirror input[value=all]').checked")
+    page.wait_for_function("() => document.querySelector('#edit-mirror input[value=all]').checked"
+                           f" && ['', 'none'].includes({reweight_word})")
     page.locator("#edit-button").click()
     src = wait_for_new_video(page, video, src, 768)
     page.wait_for_function("() => document.querySelector('#edit-summary').innerText.includes('Mirrored')")
