@@ -43,6 +43,9 @@ SPLIT_PATTERN = "TTTXTTTTTTXTTTVTTXTT"   # 16 train, 1 val, 3 test in every 20 c
 SPLIT_NAMES = {"T": "train", "V": "val", "X": "test"}
 MIN_FRAMES = 16                          # 0.8 s at 20 fps
 CAPTIONS_PER_CLIP = 12  # varied verb phrases, word orders and manner words per motion (paraphrases understood)
+# An action captured only in styles (no "normal" take, e.g. walk-back once its cut-off take is dropped) gives this
+# many of each take's captions without a manner word, so a prompt that names none still has examples.
+PLAIN_CAPTIONS = 3
 # A take under this share of the median length of its action's takes (with at least CUT_OFF_MIN_TAKES
 # of them to take a median over) was cut off early: the only unstyled walk-back take is 1 s where the
 # styled ones run 6-13 s, and trained on, it taught the plain "walks backward" prompt a 1 s motion.
@@ -378,10 +381,14 @@ def build_bandai(source: str | Path, out: str | Path, workers: int = 2, seed: in
     splits = assign_splits(good, seed)
     good = [c for c in good if c.name not in cut]
     labels, texts = {}, {}
+    styled_only = {c.content for c in good} - {c.content for c in good if c.style == "normal"}
     for c in good:
         for prefix in ("", "M"):
             content = MIRRORED_CONTENT.get(c.content, c.content) if prefix else c.content
             caps = captions_for(content, c.style, f"{prefix}{c.name}", CAPTIONS_PER_CLIP)
+            if c.content in styled_only:
+                caps = caps[:-PLAIN_CAPTIONS] + captions_for(content, c.style, f"{prefix}{c.name}/plain",
+                                                             PLAIN_CAPTIONS, plain=True)
             if prefix and content == c.content:
                 caps = [swap_left_right(x) for x in caps]
             texts[f"{prefix}{c.name}"] = [caption_line(x) for x in caps]

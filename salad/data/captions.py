@@ -174,14 +174,14 @@ def _article(word: str) -> str:
     return "an" if word[:1] in "aeiou" else "a"
 
 
-def caption_variants(content: str, style: str) -> list[tuple[str, int]]:
+def caption_variants(content: str, style: str, plain: bool = False) -> list[tuple[str, int]]:
     """Every caption the templates can produce for a (content, style) pair, each with
-    the index of the verb phrase it uses."""
+    the index of the verb phrase it uses; plain: only those that name no manner."""
     if content not in CONTENT_PHRASES:
         raise KeyError(f"no caption templates for content {content!r}")
     if style not in STYLE_PHRASES:
         raise KeyError(f"no caption templates for style {style!r}")
-    adverbs, adjectives = STYLE_PHRASES[style]
+    adverbs, adjectives = (("",), ("",)) if plain else STYLE_PHRASES[style]
     out = []
     for subj in SUBJECTS:
         poss = _POSSESSIVE.get(subj, "their")
@@ -203,9 +203,9 @@ def caption_variants(content: str, style: str) -> list[tuple[str, int]]:
     return out
 
 
-def captions_for(content: str, style: str, key: str, n: int = 3) -> list[str]:
-    """`n` distinct captions for a clip, the same for the same key on every run."""
-    variants = caption_variants(content, style)
+def captions_for(content: str, style: str, key: str, n: int = 3, plain: bool = False) -> list[str]:
+    """`n` distinct captions for a clip, the same for the same key on every run (plain: naming no manner)."""
+    variants = caption_variants(content, style, plain)
     seed = int.from_bytes(hashlib.sha256(key.encode()).digest()[:8], "little")
     rng = random.Random(seed)
     rng.shuffle(variants)
