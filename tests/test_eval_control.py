@@ -64,7 +64,8 @@ def test_eval_control_end_to_end(tiny_model, tiny_dataset, tmp_path, capsys):
     out = tmp_path / "bench"
     a = p.parse_args(["eval-control", "--data", str(tiny_dataset), "--evaluator", str(EMBEDDED_EVALUATOR),
                       "--model", str(tiny_model), "--samples", "2", "--steps", "3", "--strength", "0,2",
-                      "--out", str(out)])
+                      # the guided rows' deterministic DDIM, so that strength 0 is the Unconstrained row again
+                      "--ddim-eta", "0", "--cfg-rescale", "0", "--cfg-cutoff", "0", "--out", str(out)])
     assert a.func(a) == 0
     res = json.loads((out / "results.json").read_text())
     rows = res["rows"]
@@ -81,6 +82,7 @@ def test_eval_control_end_to_end(tiny_model, tiny_dataset, tmp_path, capsys):
     assert zero == pytest.approx(free, abs=0.01) and guided < free
     report = (out / "report.md").read_text()
     assert "Traj err 50cm" in report and "AITS" in report and "1.04" in report
+    assert "the Unconstrained row (eta 0, CFG rescale 0), the guided rows deterministic" in report
     assert report == markdown_report(res)
     assert "wrote" in capsys.readouterr().out
     bad = p.parse_args(["eval-control", "--data", str(tiny_dataset), "--out", str(tmp_path / "x"),

@@ -355,7 +355,7 @@ def test_class_balance_draws_rare_actions_as_configured(tiny_model, tiny_dataset
     task = DenoiserTask(_balance_config(root, tiny_model, tmp_path / "run", balance), show_progress=False)
     drawn = []
     bank_batch = task.text.batch
-    task.text.batch = lambda captions: (drawn.extend(captions), bank_batch(captions))[1]
+    task.text.batch = lambda captions, multiple=1: (drawn.extend(captions), bank_batch(captions, multiple))[1]
     rng = np.random.default_rng(0)
     for auto in (0.0, 1.0):
         task.cfg.auto_length_prob = auto

@@ -86,7 +86,10 @@ def _float_list(text: str, what: str) -> list[float]:
 
 def add_eval_control(sub) -> argparse.ArgumentParser:
     """Register `eval-control` on the CLI's subparsers."""
-    p = sub.add_parser("eval-control", help="path-following benchmark: Traj/Loc/Avg err, FID, R-precision, AITS")
+    p = sub.add_parser("eval-control", help="path-following benchmark: Traj/Loc/Avg err, FID, R-precision, AITS",
+                       description="Path-following benchmark. --ddim-eta, --cfg-rescale and --cfg-cutoff set how the "
+                                   "Unconstrained row samples; the guided rows run deterministic DDIM with guidance at "
+                                   "every step (MoLA's sampler).")
     p.add_argument("--data", required=True, help="HumanML3D-layout dataset")
     p.add_argument("--evaluator", default=str(EMBEDDED_EVALUATOR),
                    help="evaluator checkpoint directory (default: the one shipped in assets/eval)")
@@ -102,7 +105,7 @@ def add_eval_control(sub) -> argparse.ArgumentParser:
     p.add_argument("--gradient-steps", default=None, help="guidance steps per network evaluation")
     p.add_argument("--refine-steps", default=None, help="guidance steps on the final latent")
     p.add_argument("--repeats", default=None, help="time-travel repeats per step (default: 1-3 by phase)")
-    add_sampling(p, ("ddim", "consistency"), teacher_options=False)
+    add_sampling(p, ("ddim", "consistency"))
     p.add_argument("--max-frames", type=int, default=196)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
@@ -132,6 +135,7 @@ def cmd_eval_control(a) -> int:
     ev = load_evaluator(a.evaluator)
     ds = MotionDataset(a.data, a.split, max_frames=10 ** 9)
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device)
+    apply_sampling(pipe, a)
     res = evaluate_control(pipe, ds, ev, samples=a.samples, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                            settings=settings,
                            joints=joints, density=a.density, seed=a.seed, max_frames=a.max_frames,

@@ -37,6 +37,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ..diffusion.sampling import describe_settings
 from ..files import atomic_write_text
 from ..motion import skeleton as sk
 from ..motion.control import ControlSignal, control_errors, make_signal
@@ -250,7 +251,7 @@ def evaluate_control(pipe, dataset, evaluator, samples: int = 32, steps: int | N
     return {
         "rows": rows,
         "protocol": {"dataset": str(dataset.root), "samples": len(cases), "pool": pool, "steps": steps, "cfg": cfg,
-                     "sampler": sampler,
+                     "sampler": sampler, "unconstrained_sampling": pipe.sampler_settings(sampler),
                      "joints": [sk.JOINT_NAMES[j] for j in joints], "density": str(density), "seed": seed,
                      "max_frames": max_frames, "reference_motions": len(dataset.items),
                      "torch_threads": torch.get_num_threads(), "device": str(pipe.device),
@@ -271,6 +272,17 @@ _REAL_COLS = ("R_precision_top1", "R_precision_top2", "R_precision_top3", "FID",
 def _where(protocol: dict) -> str:
     device = protocol.get("device", "cpu")       # results written before the device was recorded ran on the CPU
     return f"{protocol['torch_threads']} CPU thread(s)" if device == "cpu" else f"the {device} GPU"
+
+
+def _unconstrained_sampling(protocol: dict) -> str:
+    """How the Unconstrained row sampled where that differs from the guided rows (reports written before it was
+    recorded say nothing)."""
+    settings = protocol.get("unconstrained_sampling")
+    sampler = protocol.get("sampler", "ddim")
+    if not settings or sampler == "consistency":
+        return ""
+    words = describe_settings({**settings, "sampler": sampler})
+    return f"; the Unconstrained row{words}, the guided rows deterministic with guidance at every step"
 
 
 def markdown_report(results: dict[str, Any]) -> str:
@@ -303,7 +315,8 @@ def markdown_report(results: dict[str, Any]) -> str:
                      + "; ".join(f"{n}: {v['top1']:.2f} / {v['top3']:.2f}" for n, v in ratios) + ".")
     lines += ["", f"Protocol: {p['samples']} motions of `{p['dataset']}` (at most {p['max_frames']} frames, "
                   f"multiples of 4), one caption each; control = the real {', '.join(p['joints'])} position at "
-                  f"{p['density']} density; {p['steps']} {p.get('sampler', 'ddim')} steps, CFG {p['cfg']}, seed {p['seed']}. Traj. err: share of motions "
+                  f"{p['density']} density; {p['steps']} {p.get('sampler', 'ddim')} steps, CFG {p['cfg']}, seed {p['seed']}"
+                  + _unconstrained_sampling(p) + ". Traj. err: share of motions "
                   "with any controlled location off by more than the threshold; Loc. err: mean share of controlled "
                   "locations off by more; Avg. err: mean distance (m, ± 95% CI over motions). R-precision within "
                   f"pools of {p['pool']}" + (" (easier than the usual 32)" if p["pool"] < MAX_POOL else "") +
