@@ -197,8 +197,8 @@ class DenoiserTask:
         # motion ends in training) on the whole canvas; fixed-length rows then keep only their
         # own latent frames (masked in time), auto-length rows keep the whole canvas.
         frames = np.where(self.lengths[idx] <= self.canvas, self.lengths[idx] // 4 * 4, self.canvas)
-        # Batch shapes come from a few buckets: every new (frames, tokens) shape made the CPU kernels
-        # cache another set of primitives and grew a long run's memory without bound.
+        # Batch shapes come from a few buckets: on the CPU each new (frames, tokens) shape adds kernel
+        # primitives and allocator pools, and with one shape per length a long run's memory kept growing.
         T = self.canvas if auto else min(self.canvas, -(-int(frames.max()) // FRAME_BUCKET) * FRAME_BUCKET)
         if self.bundle is not None:
             latents, crops = self.bundle.rows(idx, rng) * self.latent_scale, None
