@@ -65,6 +65,22 @@ def test_splits_are_stratified_and_fixed():
         assert assign_splits(rare, seed=0)["k"] == "train"
 
 
+def test_a_dropped_clip_moves_no_other_clip_between_splits():
+    clips = [Clip(f"{k}_{s}_{i:03d}", Path("x"), 1, k, s) for k in ("walk", "walk-back") for s in ("normal", "sad")
+             for i in range(12)]
+    full = assign_splits(clips, seed=0)
+    gone = {"walk-back_normal_000", "walk_normal_003"}
+    kept = assign_splits(clips, seed=0, dropped=gone)
+    assert kept == {n: s for n, s in full.items() if n not in gone}
+    # dealing the remaining clips afresh would shift the pattern for every stratum after the first gap
+    fresh = assign_splits([c for c in clips if c.name not in gone], seed=0)
+    assert fresh != kept
+    # a class left with one clip still trains on it, whatever was dropped
+    rare = [Clip("k1", Path("x"), 1, "kick", "a"), Clip("k2", Path("x"), 1, "kick", "a")]
+    for drop in ({"k1"}, {"k2"}):
+        assert list(assign_splits(rare, seed=0, dropped=drop).values()) == ["train"]
+
+
 def test_a_take_far_shorter_than_its_actions_others_is_cut_off():
     styles = ("normal", "angry", "happy", "old", "sad")
     walks_back = [Clip(f"b1_walk-back_{s}_001", Path(f"{s}.bvh"), 1, "walk-back", s) for s in styles]

@@ -26,6 +26,7 @@ import shutil
 import tarfile
 import tempfile
 from collections import Counter, defaultdict
+from collections.abc import Collection
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -120,12 +121,14 @@ def _read_labels(path: Path) -> list[str]:
 
 # ---------------------------------------------------------------- splits
 
-def assign_splits(clips: list[Clip], seed: int = 0) -> dict[str, str]:
+def assign_splits(clips: list[Clip], seed: int = 0, dropped: Collection[str] = ()) -> dict[str, str]:
     """Stratify by (dataset, content, style): clips of each stratum are shuffled and laid
     end to end, and the run is dealt out along SPLIT_PATTERN, so every stratum and the
     whole set split about 80/5/15. A content class the dealing leaves without a training
     clip (one recorded once, such as Bandai's kick) gets its first clip back in train: a
-    model cannot learn an action it never sees, and one held-out clip measures nothing."""
+    model cannot learn an action it never sees, and one held-out clip measures nothing.
+    Clips named in `dropped` keep their place in the dealing and are then left out, so
+    dropping a clip moves no other clip between splits."""
     rng = np.random.default_rng(seed)
     strata = defaultdict(list)
     for c in clips:
@@ -135,7 +138,10 @@ def assign_splits(clips: list[Clip], seed: int = 0) -> dict[str, str]:
         names = sorted(strata[key])
         rng.shuffle(names)
         order.extend(names)
-    splits = {name: SPLIT_NAMES[SPLIT_PATTERN[i % len(SPLIT_PATTERN)]] for i, name in enumerate(order)}
+    gone = set(dropped)
+    splits = {name: SPLIT_NAMES[SPLIT_PATTERN[i % len(SPLIT_PATTERN)]] for i, name in enumerate(order)
+              if name not in gone}
+    order = [n for n in order if n not in gone]
     content = {c.name: c.content for c in clips}
     first = {}
     for name in order:
@@ -377,8 +383,7 @@ def build_bandai(source: str | Path, out: str | Path, workers: int = 2, seed: in
             for prefix in ("", "M"):
                 (work / sub / f"{prefix}{name}.npy").unlink(missing_ok=True)
     conv.skipped.update(cut)
-    # dealt before the cut, so dropping a take leaves every other clip in the split it had
-    splits = assign_splits(good, seed)
+    splits = assign_splits(good, seed, dropped=cut)
     good = [c for c in good if c.name not in cut]
     labels, texts = {}, {}
     styled_only = {c.content for c in good} - {c.content for c in good if c.style == "normal"}
