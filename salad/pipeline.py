@@ -191,19 +191,18 @@ class Pipeline:
         frame_mask (B, T) marks real latent frames when motions of several lengths share a batch."""
         rows_mask = None if frame_mask is None else torch.cat((frame_mask, frame_mask))
 
-        def fn(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        def run(x: torch.Tensor, t: torch.Tensor, rows: slice, mask: torch.Tensor | None) -> torch.Tensor:
             with self.autocast():
                 flags = torch.full((x.shape[0],), auto, device=x.device)
-                return self.denoiser(x, t, text.tokens, text.mask, rows_mask, pooled_text=text.pooled,
+                return self.denoiser(x, t, text.tokens[rows], text.mask[rows], mask,
+                                     pooled_text=None if text.pooled is None else text.pooled[rows],
                                      auto_length=flags).float()
 
+        def fn(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            return run(x, t, slice(None), rows_mask)
+
         def conditional(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-            b = x.shape[0]
-            with self.autocast():
-                flags = torch.full((b,), auto, device=x.device)
-                return self.denoiser(x, t, text.tokens[b:], text.mask[b:], frame_mask,
-                                     pooled_text=None if text.pooled is None else text.pooled[b:],
-                                     auto_length=flags).float()
+            return run(x, t, slice(x.shape[0], None), frame_mask)
 
         # Unguided steps need the prompts' rows alone, unless an attention controller (an edit, the
         # explorer's store) is attached: it indexes rows in the full [unconditional, conditional] layout.

@@ -81,11 +81,12 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
     timesteps = sched.timesteps
     for i, t in enumerate(timesteps):
         tt = torch.full((2 * x.shape[0],), int(t), dtype=torch.long, device=x.device)
-        if int(t) < unguided_below and conditional is not None:
+        guided = int(t) >= unguided_below
+        if not guided and conditional is not None:
             out = conditional(x, tt[:x.shape[0]]).float()
         else:
             out = model(torch.cat((x, x), dim=0), tt)
-            out = cfg_combine(out.float(), 1.0 if int(t) < unguided_below else cfg_scale, cfg_rescale)
+            out = cfg_combine(out.float(), cfg_scale if guided else 1.0, cfg_rescale)
         if eta > 0:
             x = sched.step(out, t, x, eta=eta, variance_noise=fresh_noise(x, generator, shared_noise)).prev_sample
         else:
