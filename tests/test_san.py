@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from salad.checkpoint import CheckpointError
+from salad.config import ConfigError
 from salad.models.discriminator import (DiscriminatorConfig, SANDiscriminator, san_discriminator_loss,
                                         san_generator_loss)
 from salad.models.io import load_vae, save_vae, vae_checksum, vae_latent_checksums, vae_latent_sources
@@ -148,6 +149,39 @@ def test_lambda_zero_trains_no_discriminator(tiny_model, tiny_dataset, tmp_path)
     assert all(torch.equal(v, disc0[k]) for k, v in task.model.disc.state_dict().items())
     with pytest.raises(ValueError, match="lambda_adv"):
         VAESANTask(_san_cfg(tiny_dataset, tiny_model / "vae", tmp_path / "bad", lam=-1.0))
+
+
+def test_a_widened_decoder_decodes_as_before_then_trains_and_loads_with_its_width(tiny_model, tiny_dataset, tmp_path):
+    from salad.models.vae import widen_decoder
+    source = tiny_model / "vae"
+    vae, _, _, _ = load_vae(source)
+    dim = vae.decoder_dim
+    wide = widen_decoder(vae, dim + 8).eval()
+    z = torch.randn(2, 6, 7, vae.config.latent_dim)
+    with torch.no_grad():
+        (a, act_a), (b, act_b) = vae.decode(z), wide.decode(z)
+    assert torch.allclose(a, b, atol=1e-5) and torch.allclose(act_a, act_b, atol=1e-5)
+    assert sum(p.numel() for p in wide.parameters()) > sum(p.numel() for p in vae.parameters())
+    enc = encoder_state(vae)
+    assert all(torch.equal(v, wide.state_dict()[k]) for k, v in enc.items())
+    with pytest.raises(ValueError, match="narrow"):
+        widen_decoder(wide, dim)
+
+    cfg = _san_cfg(tiny_dataset, source, tmp_path / "wide", steps=2)
+    cfg.decoder_dim = dim + 8
+    out = Trainer(VAESANTask(cfg), cfg.optim, cfg.run).fit()
+    trained, _, _, doc = load_vae(out)
+    assert trained.decoder_dim == dim + 8 and doc["config"]["vae"]["decoder_dim"] == dim + 8
+    # the feature heads' weights on the new channels start at zero and training moved them
+    assert torch.equal(wide.joint_out.nets[0][2].weight[:, dim:], torch.zeros_like(wide.joint_out.nets[0][2].weight[:, dim:]))
+    assert trained.joint_out.nets[0][2].weight[:, dim:].abs().sum() > 0
+    # the wide decoder now reads its new channels: the output differs from the source's
+    with torch.no_grad():
+        assert not torch.allclose(trained.decode(z)[0], a, atol=1e-3)
+    assert all(torch.equal(v, trained.state_dict()[k]) for k, v in enc.items())
+    cfg.decoder_dim = dim - 1
+    with pytest.raises(ConfigError, match="narrower"):
+        VAESANTask(cfg)
 
 
 def test_planted_foot_error_counts_sliding_where_the_real_foot_is_planted_only(tiny_dataset):

@@ -26,6 +26,9 @@ class VAEConfig:
     blocks_per_level: int = 2
     dropout: float = 0.1
     activation_channel: bool = True   # MoLA's per-frame "is the motion still going" flag
+    # the decoder's channel width (0: latent_dim, the paper's symmetric VAE); a wider one decodes the
+    # same latents, its extra channels starting at zero (widen_decoder)
+    decoder_dim: int = 0
     lambda_pos: float = 0.5
     lambda_vel: float = 0.5
     lambda_kl: float = 0.02
@@ -144,11 +147,14 @@ class MotionVAE(nn.Module):
         self.pool2 = STPool(sk.POOL_12_TO_7, j12.size)
         self.to_dist = PerJointLinear(j7.size, D, 2 * D)
 
+        if c.decoder_dim and c.decoder_dim < D:
+            raise ValueError(f"decoder_dim must be 0 or at least latent_dim ({D}), got {c.decoder_dim}")
+        Dd = self.decoder_dim = c.decoder_dim or D
         self.unpool2 = STUnpool(sk.POOL_12_TO_7, j12.size)
-        self.dec12 = nn.Sequential(*[ResSTBlock(j12, D, k, c.dropout) for _ in range(c.blocks_per_level)])
+        self.dec12 = nn.Sequential(*[ResSTBlock(j12, Dd, k, c.dropout) for _ in range(c.blocks_per_level)])
         self.unpool1 = STUnpool(sk.POOL_22_TO_12, j22.size)
-        self.dec22 = nn.Sequential(*[ResSTBlock(j22, D, k, c.dropout) for _ in range(c.blocks_per_level)])
-        self.joint_out = JointwiseMLP([D] * len(dims), dims, D)
+        self.dec22 = nn.Sequential(*[ResSTBlock(j22, Dd, k, c.dropout) for _ in range(c.blocks_per_level)])
+        self.joint_out = JointwiseMLP([Dd] * len(dims), dims, Dd)
 
     # -- shapes
     @staticmethod
@@ -177,7 +183,11 @@ class MotionVAE(nn.Module):
 
     def decode(self, z: torch.Tensor):
         """(B, T/4, 7, D) -> (features (B, T, 263), activation logits (B, T) or None)."""
-        h = self.dec22(self.unpool1(self.dec12(self.unpool2(z.permute(0, 3, 2, 1)))))
+        h = z.permute(0, 3, 2, 1)
+        if self.decoder_dim > h.shape[1]:
+            # the latent fills the first channels of a wider decoder's residual stream
+            h = F.pad(h, (0, 0, 0, 0, 0, self.decoder_dim - h.shape[1]))
+        h = self.dec22(self.unpool1(self.dec12(self.unpool2(h))))
         h = h.permute(0, 3, 2, 1)  # (B, T, 22, D)
         parts = self.joint_out([h[:, :, j] for j in range(h.shape[2])])
         act = None
@@ -226,3 +236,36 @@ class MotionVAE(nn.Module):
             total = total + c.lambda_act * terms["act"]
         terms["total"] = total
         return total, {k: float(v.detach()) for k, v in terms.items()}, recon, act_logits
+
+
+DECODER_PARTS = ("dec12", "dec22", "joint_out")
+
+
+def widen_decoder(vae: MotionVAE, dim: int, init_std: float = 1e-2, seed: int = 0) -> MotionVAE:
+    """A copy of `vae` whose decoder has `dim` channels and decodes exactly as before: the old
+    channels keep their weights and never read the new ones; the new channels read everything
+    through small random weights and are read by nothing yet, so training can put them to use
+    without the decoder first unlearning what it knows. The encoder (the latent space) is unchanged."""
+    from dataclasses import replace
+    old_dim = vae.decoder_dim
+    if dim < old_dim:
+        raise ValueError(f"cannot narrow a decoder from {old_dim} to {dim} channels")
+    wide = MotionVAE(replace(vae.config, decoder_dim=dim))
+    g = torch.Generator().manual_seed(seed)
+    state = {}
+    for name, new in wide.state_dict().items():
+        old = vae.state_dict()[name]
+        if name.split(".", 1)[0] not in DECODER_PARTS or new.shape == old.shape:
+            state[name] = old.clone()
+            continue
+        # rows are outputs, columns inputs; the joint MLPs' last layer (outputs: features) only gains inputs
+        w = torch.zeros_like(new)
+        grown_out = new.shape[0] > old.shape[0]
+        if grown_out:
+            w[old.shape[0]:] = init_std * torch.randn(new[old.shape[0]:].shape, generator=g)
+            if name.endswith("bias"):
+                w[old.shape[0]:] = 0.0
+        w[tuple(slice(0, n) for n in old.shape)] = old
+        state[name] = w
+    wide.load_state_dict(state)
+    return wide.train(vae.training)

@@ -92,6 +92,9 @@ class VAESANTrainConfig:
     lambda_root: float = 0.0
     # weight of the joints' world acceleration error, (m/s^2)^2: keeps latent noise from becoming jitter; 0 = off
     lambda_acc: float = 0.0
+    # the decoder's channel width: 0 keeps the source's; more widens it, decoding exactly as the source's
+    # does at the start (models/vae.py: widen_decoder)
+    decoder_dim: int = 0
     data: DataConfig = field(default_factory=DataConfig)
     discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, warmup_steps=100, grad_clip=0.0))

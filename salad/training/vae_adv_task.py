@@ -21,11 +21,11 @@ import torch
 import torch.nn as nn
 from torch.func import functional_call
 
-from ..config import to_dict
+from ..config import ConfigError, to_dict
 from ..data.dataset import MotionDataset, WindowSampler
 from ..models.discriminator import SANDiscriminator, san_discriminator_loss, san_generator_loss
 from ..models.io import load_vae, save_vae, vae_latent_sources
-from ..models.vae import MotionVAE
+from ..models.vae import MotionVAE, widen_decoder
 from ..motion.representation import Normalizer
 from .balance import window_weights
 from .configs import VAESANTrainConfig
@@ -99,6 +99,11 @@ class VAESANTask:
     def __init__(self, cfg: VAESANTrainConfig, dataset: MotionDataset | None = None):
         self.cfg = cfg
         vae, self.normalizer, self.latent_scale, _ = load_vae(cfg.vae)
+        if cfg.decoder_dim and cfg.decoder_dim != vae.decoder_dim:
+            if cfg.decoder_dim < vae.decoder_dim:
+                raise ConfigError(f"decoder_dim {cfg.decoder_dim} is narrower than {cfg.vae}'s decoder "
+                                  f"({vae.decoder_dim}); 0 keeps it")
+            vae = widen_decoder(vae, cfg.decoder_dim, seed=cfg.run.seed)
         self.sources = vae_latent_sources(cfg.vae)
         # the source VAE's statistics define its latent space, whatever the data directory holds
         self.dataset = dataset or MotionDataset(cfg.data.root, "train", min_frames=cfg.data.min_frames,
