@@ -238,6 +238,8 @@ class MotionVAE(nn.Module):
         return total, {k: float(v.detach()) for k, v in terms.items()}, recon, act_logits
 
 
+# the modules that define the latent space, and those that only read it
+ENCODER_PARTS = ("joint_in", "enc22", "pool1", "enc12", "pool2", "to_dist")
 DECODER_PARTS = ("dec12", "dec22", "joint_out")
 
 

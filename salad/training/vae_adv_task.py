@@ -25,13 +25,11 @@ from ..config import ConfigError, to_dict
 from ..data.dataset import MotionDataset, WindowSampler
 from ..models.discriminator import SANDiscriminator, san_discriminator_loss, san_generator_loss
 from ..models.io import load_vae, save_vae, vae_latent_sources
-from ..models.vae import MotionVAE, widen_decoder
+from ..models.vae import ENCODER_PARTS, MotionVAE, widen_decoder
 from ..motion.representation import Normalizer
 from .balance import window_weights
 from .configs import VAESANTrainConfig
 from .foot_loss import velocity_errors
-
-ENCODER_PARTS = ("joint_in", "enc22", "pool1", "enc12", "pool2", "to_dist")
 
 
 def encoder_modules(vae: MotionVAE) -> list[nn.Module]:
