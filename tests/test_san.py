@@ -269,3 +269,24 @@ def test_eval_vae_measures_pose_error_and_feet_for_each_vae(tiny_model, tiny_dat
     assert main(["eval-vae", "--data", str(root), "--vae", vae, "--out", str(tmp_path / "out2")]) != 0
     assert "no walking clips" in capsys.readouterr().err
     assert not (tmp_path / "out2" / "results.json").exists()
+
+
+def test_a_denoiser_trained_through_a_fine_tuned_decoder_records_the_latent_space_it_learns(
+        tiny_model, tiny_dataset, tmp_path):
+    from salad.models.denoiser import DenoiserConfig
+    from salad.models.io import vae_latent_origin
+    from salad.training.configs import DenoiserTrainConfig
+    from salad.training.denoiser_task import DenoiserTask
+
+    source = tiny_model / "vae"
+    tuned = Trainer(VAESANTask(cfg := _san_cfg(tiny_dataset, source, tmp_path / "tuned")), cfg.optim, cfg.run).fit()
+    assert vae_latent_origin(tuned) == vae_latent_origin(source) == vae_checksum(source) != vae_checksum(tuned)
+    vae, _, _, _ = load_vae(source)
+    task = DenoiserTask(DenoiserTrainConfig(
+        data=DataConfig(root=str(tiny_dataset), max_frames=40, balance=1.0),
+        model=DenoiserConfig(latent_dim=vae.config.latent_dim, dim=32, heads=4, ff_dim=64, layers=1, text_dim=384),
+        optim=OptimConfig(batch_size=4, warmup_steps=1, max_steps=1),
+        run=RunConfig(out_dir=str(tmp_path / "dn"), bf16=False), vae=str(tuned)), show_progress=False)
+    # the source's checksum, which every decoder fine-tuned on its frozen encoder lists: a sibling of `tuned`
+    # (another fine-tune of the same source) fits the denoiser as well as `tuned` does
+    assert task.vae_checksum == vae_checksum(source)

@@ -87,6 +87,13 @@ def vae_latent_sources(path: str | Path) -> list[str]:
     return list(dict.fromkeys(chain))
 
 
+def vae_latent_origin(path: str | Path) -> str:
+    """The checksum that names `path`'s latent space: the VAE whose encoder made it. A denoiser or
+    student records this one, so that any decoder fine-tuned on the same frozen encoder fits it,
+    a sibling of the VAE it was trained with included."""
+    return vae_latent_sources(path)[0]
+
+
 def vae_latent_checksums(path: str | Path) -> set[str]:
     """The VAE checksums a denoiser may have recorded and still fit this VAE: its own, or that of
     a VAE it was fine-tuned from with the encoder frozen."""

@@ -30,7 +30,7 @@ from ..config import from_dict, to_dict
 from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_timesteps
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
 from ..models.denoiser import Denoiser
-from ..models.io import load_consistency_student, load_denoiser, save_denoiser, vae_checksum, vae_latent_checksums
+from ..models.io import load_consistency_student, load_denoiser, save_denoiser, vae_latent_checksums, vae_latent_origin
 from .configs import ConsistencyTrainConfig, DenoiserTrainConfig
 from .denoiser_task import DenoiserTask
 
@@ -177,7 +177,7 @@ class ConsistencyTask:
         if teacher.config.guidance_embedding:
             raise CheckpointError(f"{root / 'denoiser'} is a distilled student already; distil a CFG-trained denoiser")
         self.teacher_doc = doc
-        self.vae_checksum = vae_checksum(root / "vae")
+        self.vae_checksum = vae_latent_origin(root / "vae")
         # Batches are the denoiser's own (same latents, captions, class balance, length modes),
         # with every caption kept: the teacher's unconditional row is added here.
         teacher_training = doc.get("meta", {}).get("train_config", {})

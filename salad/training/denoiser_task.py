@@ -28,7 +28,7 @@ from ..diffusion.schedule import NoiseSchedule
 from ..models.denoiser import Denoiser
 from ..checkpoint import CheckpointError, load_state_strict
 from .balance import class_weights, dataset_content
-from ..models.io import load_denoiser, load_vae, save_denoiser, vae_checksum, vae_latent_checksums
+from ..models.io import load_denoiser, load_vae, save_denoiser, vae_latent_checksums, vae_latent_origin
 from ..models.text import load_text_encoder, parse_text_encoder_spec
 from ..models.text_bank import TextBank
 from ..precision import resolve_device
@@ -95,7 +95,7 @@ class DenoiserTask:
             raise CheckpointError(f"the denoiser's VAE: {e} (train one with `salad train vae`, or pass "
                                   "--vae assets/model/vae to use the embedded one)") from None
         self.vae.requires_grad_(False)
-        self.vae_checksum = vae_checksum(cfg.vae)
+        self.vae_checksum = vae_latent_origin(cfg.vae)
         d = cfg.data
         self.canvas = (d.max_frames // 4) * 4
         # VAE posteriors (mean, log-variance) over the canvas of motions that fit it, kept from
