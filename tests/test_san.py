@@ -175,9 +175,6 @@ def test_a_widened_decoder_decodes_as_before_then_trains_and_loads_with_its_widt
     # the feature heads' weights on the new channels start at zero and training moved them
     assert torch.equal(wide.joint_out.nets[0][2].weight[:, dim:], torch.zeros_like(wide.joint_out.nets[0][2].weight[:, dim:]))
     assert trained.joint_out.nets[0][2].weight[:, dim:].abs().sum() > 0
-    # the wide decoder now reads its new channels: the output differs from the source's
-    with torch.no_grad():
-        assert not torch.allclose(trained.decode(z)[0], a, atol=1e-3)
     assert all(torch.equal(v, trained.state_dict()[k]) for k, v in enc.items())
     cfg.decoder_dim = dim - 1
     with pytest.raises(ConfigError, match="narrower"):
