@@ -254,19 +254,17 @@ def widen_decoder(vae: MotionVAE, dim: int, init_std: float = 1e-2, seed: int = 
         raise ValueError(f"cannot narrow a decoder from {old_dim} to {dim} channels")
     wide = MotionVAE(replace(vae.config, decoder_dim=dim))
     g = torch.Generator().manual_seed(seed)
-    state = {}
+    source, state = vae.state_dict(), {}
     for name, new in wide.state_dict().items():
-        old = vae.state_dict()[name]
+        old = source[name]
         if name.split(".", 1)[0] not in DECODER_PARTS or new.shape == old.shape:
             state[name] = old.clone()
             continue
-        # rows are outputs, columns inputs; the joint MLPs' last layer (outputs: features) only gains inputs
+        # rows are outputs, columns inputs; new rows of a weight read everything, new biases start at zero, and
+        # the joint MLPs' last layer (outputs: features) only gains zero columns
         w = torch.zeros_like(new)
-        grown_out = new.shape[0] > old.shape[0]
-        if grown_out:
+        if new.ndim > 1 and new.shape[0] > old.shape[0]:
             w[old.shape[0]:] = init_std * torch.randn(new[old.shape[0]:].shape, generator=g)
-            if name.endswith("bias"):
-                w[old.shape[0]:] = 0.0
         w[tuple(slice(0, n) for n in old.shape)] = old
         state[name] = w
     wide.load_state_dict(state)
