@@ -43,6 +43,9 @@ DOWNLOADS = {"generate": ("mp4", "bvh", "npy", "features", "npz"),
 # The software rasteriser's time goes with the pixels: the preview is drawn at ~0.7x the full
 # video's width and height (salad.render's 448 px single view and 384 px panels).
 PREVIEW_SIZE, PREVIEW_PANEL_SIZE = (320, 320), (272, 272)
+# Previews also draw every other frame at half the frame rate: on a software rasteriser each frame
+# costs 5-9 ms, which made rendering 60-80% of a request, and the full video replaces them anyway.
+PREVIEW_STRIDE = 2
 EDIT_DOWNLOADS = ("edited_bvh", "source_bvh", "edited_npy", "source_npy", "edited_features", "source_features",
                   "edited_npz", "source_npz")
 
@@ -161,19 +164,21 @@ class Studio:
         m = result.motion
         report = lambda i, n: progress("rendering", i, n)   # noqa: E731
         size = {} if antialias else {"size": PREVIEW_PANEL_SIZE if result.kind == "edit" else PREVIEW_SIZE}
+        step = 1 if antialias else PREVIEW_STRIDE
+        fps = m.fps / step
         if result.kind == "edit":
-            return render_side_by_side([result.source.joints, m.joints], ["source", "edited"], path, fps=m.fps,
-                                       progress=report, antialias=antialias, **size)
+            return render_side_by_side([result.source.joints[::step], m.joints[::step]], ["source", "edited"], path,
+                                       fps=fps, progress=report, antialias=antialias, **size)
         if result.kind == "control":
             # Free coordinates of a target take the motion's own value, so a pelvis path's markers
             # ride at pelvis height while its ribbon lies on the floor.
             sig, n = result.signal, m.frames
             shown = np.where(sig.mask[:n], sig.targets[:n], m.joints)
-            return render_video(m.joints, path, fps=m.fps, title=m.text, targets=shown,
-                                target_mask=sig.joint_mask()[:n], trajectory=controls.pelvis_path(sig, n),
+            return render_video(m.joints[::step], path, fps=fps, title=m.text, targets=shown[::step],
+                                target_mask=sig.joint_mask()[:n][::step], trajectory=controls.pelvis_path(sig, n),
                                 progress=report, antialias=antialias, **size)
         if result.kind == "generate":
-            return render_video(m.joints, path, fps=m.fps, title=m.text, progress=report, antialias=antialias,
+            return render_video(m.joints[::step], path, fps=fps, title=m.text, progress=report, antialias=antialias,
                                 **size)
         raise ValueError(f"no video is rendered here for a {result.kind} result")
 
