@@ -70,6 +70,11 @@ class Pipeline:
         # student_info: the guidance range it learnt and the teacher it was distilled from
         self.student = None if student is None else student.eval().to(self.device)
         self.student_info = student_info or {}
+        # inference only: guided control and null-text inversion differentiate through these
+        # modules, and weight gradients nobody reads were a third of a decoder backward
+        for m in (self.vae, self.denoiser, self.text_encoder, self.student):
+            if m is not None:
+                m.requires_grad_(False)
         self.ddim_eta, self.cfg_rescale, self.cfg_cutoff = DDIM_ETA, CFG_RESCALE, CFG_CUTOFF
 
     def set_sampling(self, ddim_eta: float | None = None, cfg_rescale: float | None = None,

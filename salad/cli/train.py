@@ -18,11 +18,13 @@ def cmd_train(a) -> int:
         from ..training.vae_task import VAETask
         cfg = load_toml(VAETrainConfig, a.config)
         apply_overrides(cfg, a)
+        _limit_threads(cfg)
         task, ema = VAETask(cfg), None
     elif a.what == "denoiser":
         from ..training.denoiser_task import DenoiserTask
         cfg = load_toml(DenoiserTrainConfig, a.config)
         apply_overrides(cfg, a)
+        _limit_threads(cfg)
         task, ema = DenoiserTask(cfg), cfg.ema_decay
         task.new_latents = a.new_latents
     elif a.what == "consistency":
@@ -31,6 +33,7 @@ def cmd_train(a) -> int:
         apply_overrides(cfg, a)
         if a.teacher:
             cfg.teacher = a.teacher
+        _limit_threads(cfg)
         task, ema = ConsistencyTask(cfg), None      # the task keeps its own EMA: the target network
     elif a.what == "vae-san":
         from ..training.vae_adv_task import train_vae_san
@@ -47,6 +50,13 @@ def cmd_train(a) -> int:
     out = trainer.fit()
     print(f"model written to {out}")
     return 0
+
+
+def _limit_threads(cfg) -> None:
+    """run.threads from the start: the tasks encode captions and cache latents before the loop starts."""
+    if cfg.run.threads:
+        import torch
+        torch.set_num_threads(cfg.run.threads)
 
 
 def add_parser(sub) -> None:

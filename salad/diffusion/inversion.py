@@ -323,16 +323,8 @@ def invert(pipe, z0: torch.Tensor, prompt: str, method: str, steps: int = 50, cf
     else:
         traj = _ddim_inversion(model, z0, text, grid, 1.0, tick)
         if method == "null_text":
-            # gradients flow to the text tokens only; the weights' flags are restored after
-            params = list(pipe.denoiser.parameters())
-            flags = [p.requires_grad for p in params]
-            for p in params:
-                p.requires_grad_(False)
-            try:
-                uncond, info = _null_text_inversion(model, traj, text, grid, cfg, inner, lr, tick)
-            finally:
-                for p, f in zip(params, flags):
-                    p.requires_grad_(f)
+            # gradients flow to the text tokens only (the pipeline's weights are frozen)
+            uncond, info = _null_text_inversion(model, traj, text, grid, cfg, inner, lr, tick)
     info["model_calls"] = model.calls
     return Inversion(method, prompt, float(cfg), grid, traj.float(), uncond, fp32,
                      time.perf_counter() - start, info)
