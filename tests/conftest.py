@@ -25,6 +25,22 @@ def shared_data_dir() -> Path | None:
     return None
 
 
+@pytest.fixture
+def cli(capsys):
+    """cli(*args) -> (exit code, stderr) of the `salad` command run in this process: the same
+    main() as `python -m salad.cli`, without the seconds a fresh interpreter takes to import torch."""
+    from salad.cli import main
+
+    def run(*args: str) -> tuple[int, str]:
+        capsys.readouterr()
+        try:
+            code = main(list(args))
+        except SystemExit as e:          # argparse refusals
+            code = e.code
+        return code, capsys.readouterr().err
+    return run
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     d = shared_data_dir()

@@ -26,17 +26,12 @@ def test_matmul_peak_is_positive():
     assert matmul_peak(__import__("torch").float32, n=256, repeats=2) > 0.1
 
 
-def test_bench_command_refuses_bad_models_and_batches_before_measuring(tmp_path):
-    import subprocess
-    import sys
-    from pathlib import Path
-    repo = Path(__file__).resolve().parents[1]
+def test_bench_command_refuses_bad_models_and_batches_before_measuring(tmp_path, cli):
     (tmp_path / "notamodel").mkdir()
     for args, message in ((["--models", "nope"], "neither 'embedded', 'paper' nor a model directory"),
                           (["--models", str(tmp_path / "notamodel")], "notamodel/vae: not a checkpoint directory"),
                           (["--batches", "1,x"], "comma list of batch sizes"),
                           (["--batches", "0"], "must be >= 1")):
-        out = subprocess.run([sys.executable, "-m", "salad.cli", "bench", "--out", str(tmp_path / "b.json"), *args],
-                             cwd=repo, capture_output=True, text=True, timeout=120)
-        assert out.returncode == 2 and message in out.stderr, (args, out.stderr[-500:])
+        code, err = cli("bench", "--out", str(tmp_path / "b.json"), *args)
+        assert code == 2 and message in err, (args, err[-500:])
     assert not (tmp_path / "b.json").exists()

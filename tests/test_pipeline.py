@@ -62,7 +62,7 @@ def test_end_of_motion_follows_activation():
     assert end_of_motion(np.zeros(40)) == 16
 
 
-def test_cli_generate_writes_files(tiny_model, tmp_path):
+def test_cli_generate_writes_files(tiny_model, tmp_path, cli):
     out = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "a person walks forward", "--model",
                           str(tiny_model), "--seconds", "1.0", "--steps", "3", "-o", str(tmp_path / "w.npy"),
                           "-o", str(tmp_path / "w.bvh"), "-o", str(tmp_path / "w.png"), "--bvh-units", "m"],
@@ -75,18 +75,16 @@ def test_cli_generate_writes_files(tiny_model, tmp_path):
     from PIL import Image
     strip = Image.open(tmp_path / "w.png")
     assert strip.height == 256 and strip.width == 6 * 256 + 5 * 2     # six frames with 2-pixel gaps
-    wrong = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "a person walks", "--model",
-                            str(tiny_model), "-o", str(tmp_path / "w2.npy"), "-o", str(tmp_path / "w.fbx")],
-                           cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert wrong.returncode == 2 and "unsupported output type '.fbx'" in wrong.stderr
+    # refusals in-process (the same main() as the command; a process start costs seconds)
+    code, err = cli("generate", "a person walks", "--model", str(tiny_model), "-o", str(tmp_path / "w2.npy"),
+                        "-o", str(tmp_path / "w.fbx"))
+    assert code == 2 and "unsupported output type '.fbx'" in err
     assert not (tmp_path / "w2.npy").exists()                       # refused before sampling anything
-    bad = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "", "--model", str(tiny_model),
-                          "-o", str(tmp_path / "x.npy")], cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert bad.returncode == 2 and "empty" in bad.stderr
-    long = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "a person walks", "--model", str(tiny_model),
-                           "--seconds", "100", "-o", str(tmp_path / "x.npy")], cwd=REPO, capture_output=True, text=True,
-                          timeout=300)
-    assert long.returncode == 2 and long.stderr.startswith("salad: error: seconds must be between")  # no bar before it
+    code, err = cli("generate", "", "--model", str(tiny_model), "-o", str(tmp_path / "x.npy"))
+    assert code == 2 and "empty" in err
+    code, err = cli("generate", "a person walks", "--model", str(tiny_model), "--seconds", "100",
+                        "-o", str(tmp_path / "x.npy"))
+    assert code == 2 and err.startswith("salad: error: seconds must be between")  # no bar before it
 
 
 def test_generate_batch_with_mixed_lengths(tiny_model):
@@ -116,7 +114,7 @@ def test_unguided_steps_skip_the_unconditional_rows_unless_a_controller_watches(
     np.testing.assert_allclose(plain.joints, watched.joints, atol=1e-3)
 
 
-def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tiny_model):
+def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tiny_model, cli):
     pipe = load_pipeline(tiny_model)
     assert (pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff) == (1.0, 0.7, 0.3)   # the defaults the model card measures
     walk = dict(seconds=1.6, seed=4, steps=6, foot_lock=False)
@@ -134,7 +132,6 @@ def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tin
     with pytest.raises(ValueError, match="cfg_cutoff must be a number in \\[0, 0.99\\]"):
         pipe.set_sampling(ddim_eta=1.0, cfg_cutoff=1.0)
     assert (pipe.ddim_eta, pipe.cfg_rescale) == (0.0, 0.0)              # a refused setting changes nothing
-    out = subprocess.run([sys.executable, "-m", "salad.cli", "generate", "a person walks", "--model", str(tiny_model),
-                          "--ddim-eta", "2", "-o", "/tmp/never.npy"], cwd=REPO, capture_output=True, text=True,
-                         timeout=300)
-    assert out.returncode == 2 and "ddim_eta must be a number in [0, 1], got 2.0" in out.stderr
+    code, err = cli("generate", "a person walks", "--model", str(tiny_model), "--ddim-eta", "2",
+                        "-o", "/tmp/never.npy")
+    assert code == 2 and "ddim_eta must be a number in [0, 1], got 2.0" in err

@@ -1,7 +1,5 @@
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -110,23 +108,21 @@ def test_vocabulary_of_an_unlabelled_dataset_round_trips(tiny_dataset, tmp_path)
     assert PromptCheck.load(tmp_path / "nothing", encoder) is None
 
 
-def test_cli_writes_the_vocabulary_and_generate_prints_warnings(tiny_model, tiny_dataset, tmp_path):
+def test_cli_writes_the_vocabulary_and_generate_prints_warnings(tiny_model, tiny_dataset, tmp_path, cli):
     model = tmp_path / "model"
     shutil.copytree(tiny_model, model)
-    run = lambda *args: subprocess.run([sys.executable, "-m", "salad.cli", *args], cwd=REPO,
-                                       capture_output=True, text=True, timeout=600)
-    made = run("data", "vocabulary", str(tiny_dataset), "--model", str(model))
-    assert made.returncode == 0, made.stderr
+    code, err = cli("data", "vocabulary", str(tiny_dataset), "--model", str(model))
+    assert code == 0, err
     assert (model / VOCABULARY_FILE).is_file() and (model / FEATURES_FILE).is_file()
-    out = run("generate", "a person does a cartwheel", "-o", str(tmp_path / "c.npy"), "--model", str(model),
-              "--steps", "2", "--seconds", "1")
-    assert out.returncode == 0, out.stderr
-    assert "warning: 'a person does a cartwheel':" in out.stderr and "closest known motion" in out.stderr
-    quiet = run("generate", "a person walks forward", "-o", str(tmp_path / "w.npy"), "--model", str(model),
-                "--steps", "2", "--seconds", "1")
-    assert quiet.returncode == 0 and "warning:" not in quiet.stderr
-    bad = run("data", "vocabulary", str(tmp_path / "missing"), "--model", str(model))
-    assert bad.returncode == 2 and "salad: error:" in bad.stderr
+    code, err = cli("generate", "a person does a cartwheel", "-o", str(tmp_path / "c.npy"), "--model", str(model),
+                    "--steps", "2", "--seconds", "1")
+    assert code == 0, err
+    assert "warning: 'a person does a cartwheel':" in err and "closest known motion" in err
+    code, err = cli("generate", "a person walks forward", "-o", str(tmp_path / "w.npy"), "--model", str(model),
+                    "--steps", "2", "--seconds", "1")
+    assert code == 0 and "warning:" not in err
+    code, err = cli("data", "vocabulary", str(tmp_path / "missing"), "--model", str(model))
+    assert code == 2 and "salad: error:" in err
 
 
 def test_the_vocabulary_keeps_each_examples_motion_length_for_a_length_prior(tiny_model, tiny_dataset, tmp_path):
