@@ -148,12 +148,18 @@ def test_reference_clips_follow_the_prompts_style_and_widen_only_when_too_few(tm
 def test_a_fidelity_run_with_the_length_prior_generates_at_the_priors_length(tmp_path):
     root = _walks_labelled(tmp_path)
     pipe = load_pipeline()
-    with pytest.raises(ValueError, match="'auto' or 'prior'"):
+    with pytest.raises(ValueError, match="'auto', 'model' or 'prior'"):
         evaluate_fidelity(pipe, root, length="longest")
     res = evaluate_fidelity(pipe, root, seeds=1, steps=2, sampler="dpm", classes=["walk"], length="prior")
     (row,) = res["rows"]
     assert sorted(s["frames"] for s in row["samples"]) == sorted(pipe.frames_for("prior", p) for p in HELD_OUT["walk"])
     assert res["settings"]["length"] == "prior" and "the length prior" in report_markdown(res)
+    # the default holds the model's lengths within the prior's band, and the report says so
+    res = evaluate_fidelity(pipe, root, seeds=1, steps=2, sampler="consistency", classes=["walk"])
+    (row,) = res["rows"]
+    bands = [pipe.auto_length_band(s["prompt"]) for s in row["samples"]]
+    assert all(lo <= s["frames"] <= hi for s, (lo, hi) in zip(row["samples"], bands))
+    assert res["settings"]["length_band"] > 1 and "held within" in report_markdown(res)
 
 
 def _stored_bye_run(side: str) -> dict:

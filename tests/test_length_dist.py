@@ -45,8 +45,8 @@ def test_histograms_bins_and_reachable_lengths():
 def test_eval_length_end_to_end_on_a_tiny_model(tiny_model, tiny_dataset, tmp_path):
     pipe = load_pipeline(tiny_model)
     ds = MotionDataset(tiny_dataset, "test", max_frames=10 ** 9)
-    # several captions in one run decode exactly like Pipeline.generate(seconds=None), row by row
-    one = pipe.generate("a person walks forward", seconds=None, seed=7, steps=2, batch=2)
+    # several captions in one run decode exactly like Pipeline.generate(seconds="model"), row by row
+    one = pipe.generate("a person walks forward", seconds="model", seed=7, steps=2, batch=2)
     mixed = generate_auto_length(pipe, ["a person walks forward"] * 2, seed=7, steps=2)
     assert [m.frames for m in mixed] == [m.frames for m in one]
     assert all(np.allclose(a.features, b.features, atol=1e-4) for a, b in zip(mixed, one))

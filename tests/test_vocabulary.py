@@ -152,10 +152,10 @@ def test_the_vocabulary_keeps_each_examples_motion_length_for_a_length_prior(tin
     assert frames == min(pipe.canvas_frames, int(round(prior * 20 / 4)) * 4)
     fixed = pipe.generate("a person walks forward", seconds="prior", seed=0, steps=2)
     assert fixed.frames == frames and fixed.info["length"] == "prior"
-    own = pipe.generate("a person walks forward", seed=0, steps=2)
+    own = pipe.generate("a person walks forward", seconds="model", seed=0, steps=2)
     assert own.info["length"] == "model" and own.frames % 4 == 0
     assert pipe.generate("a person walks forward", seconds=1.0, seed=0, steps=2).info["length"] == "requested"
-    with pytest.raises(ValueError, match="'auto' or 'prior'"):
+    with pytest.raises(ValueError, match="'auto', 'model' or 'prior'"):
         pipe.frames_for("forever")
     # a vocabulary written before lengths were kept still loads; it has no prior to give
     doc = json.loads((model / VOCABULARY_FILE).read_text())
@@ -167,6 +167,44 @@ def test_the_vocabulary_keeps_each_examples_motion_length_for_a_length_prior(tin
     (model / VOCABULARY_FILE).write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="durations"):
         load_pipeline(model)
+
+
+def test_auto_length_is_the_models_own_held_within_the_priors_band(tiny_model, tiny_dataset, tmp_path,
+                                                                    monkeypatch):
+    import numpy as np
+
+    import salad.pipeline as sp
+    from salad.models.text import load_text_encoder
+    from salad.pipeline import load_pipeline
+
+    model = tmp_path / "model"
+    shutil.copytree(tiny_model, model)
+    save_vocabulary(build_vocabulary(tiny_dataset), load_text_encoder("minilm"), model)
+    pipe = load_pipeline(model)
+    prompt = "a person walks forward"
+    # the tiny data's motions outlast the tiny model's 2 s canvas; a prior inside it gives the band room
+    assert pipe.auto_length_band(prompt) == (40, 40)
+    monkeypatch.setattr(pipe.prompt_check, "length_prior", lambda prompt, k=8: 1.4)
+    lo, hi = pipe.auto_length_band(prompt)
+    assert (lo, hi) == (24, 36) and pipe.frames_for("prior", prompt) == 28
+    for seed in range(3):
+        own = pipe.generate(prompt, seconds="model", seed=seed, steps=2)
+        auto = pipe.generate(prompt, seed=seed, steps=2)
+        assert lo <= auto.frames <= hi
+        if lo <= own.frames <= hi:                # kept: the very same motion
+            assert auto.info["length"] == "model" and np.array_equal(auto.joints, own.joints)
+        else:                                     # sampled again at the band's edge, as a request of that length
+            assert auto.info["length"] == "held" and auto.frames == min(max(own.frames, lo), hi)
+            again = pipe.generate(prompt, seconds=auto.frames / 20, seed=seed, steps=2)
+            assert np.allclose(again.joints, auto.joints, atol=1e-5)
+    # a band of one length holds every motion to the prior, in generate (each row of a batch) and in edits
+    monkeypatch.setattr(sp, "AUTO_LENGTH_BAND", 1.0)
+    frames = pipe.frames_for("prior", prompt)
+    assert pipe.auto_length_band(prompt) == (frames, frames)
+    assert [m.frames for m in pipe.generate(prompt, seed=0, steps=2, batch=2)] == [frames, frames]
+    edit = pipe.edit(prompt, "a person runs forward", seed=0, steps=2)
+    assert edit.source.frames == edit.edited.frames == frames and edit.source.info["length"] in ("held", "model")
+    assert pipe.generate(prompt, seconds=1.0, seed=0, steps=2).frames == 20      # requested lengths stay
 
 
 def test_the_vocabulary_keeps_each_examples_root_speed_to_tell_actions_done_in_place(tiny_model, tiny_dataset,

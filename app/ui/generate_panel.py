@@ -122,7 +122,7 @@ def build_generate_panel(pipe, samplers=("ddim", "dpm"), sampler: str = "ddim") 
                         api_name="load_example")
             with gr.Row():
                 auto_length = gr.Checkbox(value=True, label="Automatic length", scale=1, min_width=140,
-                                          info="the model decides when the motion ends")
+                                          info="the model decides when the motion ends, near what the training data gives such prompts")
                 seconds = gr.Slider(MIN_SECONDS, longest, value=min(DEFAULT_SECONDS, longest), step=SECONDS_STEP,
                                     label="Seconds", interactive=False, scale=2, elem_id="seconds")
             with gr.Accordion("Sampling", open=False):

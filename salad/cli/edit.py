@@ -56,7 +56,7 @@ def add_edit(sub) -> None:
                    help="body parts that follow the source at every step: lower (root path and legs), upper (spine, "
                         "arms, head), none; auto (default) holds the lower body when re-weighting a word of a prompt "
                         "whose action is done in place")
-    e.add_argument("--seconds", default=None, help="length in seconds, 'auto' (default) or 'prior', as for generate")
+    e.add_argument("--seconds", default=None, help="length in seconds, 'auto' (default), 'model' or 'prior', as for generate")
     e.add_argument("--seed", type=int, default=0)
     add_sampling(e)
     e.add_argument("--model", default=None)

@@ -219,9 +219,10 @@ def add_eval_fidelity(sub) -> None:
     p.add_argument("--prompt-set", choices=tuple(PROMPT_SETS), default="a",
                    help="which held-out paraphrase set prompts each class (salad.eval.paraphrases): a (default), or "
                         "b, written later to check that template changes generalise beyond set a's wording")
-    p.add_argument("--length", choices=("auto", "prior"), default="auto",
-                   help="auto (default): the model ends each motion itself; prior: the training data's length for "
-                        "the prompt (generate --seconds prior)")
+    p.add_argument("--length", choices=("auto", "model", "prior"), default="auto",
+                   help="as generate --seconds: auto (default): the model ends each motion itself, within a band "
+                        "around the training data's length for the prompt; model: the model alone; prior: the "
+                        "training data's length")
     add_sampling(p)
     p.add_argument("--split", default="test")
     p.add_argument("--threads", type=int, default=0)

@@ -221,9 +221,10 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | 
                       prompt_set: str = "a") -> dict:
     """Per-class checks of generated against real motion; with a `classifier` (salad.eval.classifiers), also
     the share of generated motions it puts in the prompt's action (and style, for styled classes).
-    length: "auto" (the model's own) or "prior" (Pipeline.frames_for)."""
-    if length not in ("auto", "prior"):
-        raise ValueError(f"length must be 'auto' or 'prior', got {length!r}")
+    length: "auto", "model" or "prior" (Pipeline.frames_for)."""
+    if length not in ("auto", "model", "prior"):
+        raise ValueError(f"length must be 'auto', 'model' or 'prior', got {length!r}")
+    from ..pipeline import AUTO_LENGTH_BAND
     if not isinstance(seeds, int) or seeds < 1:
         raise ValueError(f"seeds must be a positive integer, got {seeds!r}")
     steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler)     # the report names the steps used
@@ -269,7 +270,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | 
     return {"rows": rows, "rules": RULES, "settings": {
         "seeds": seeds, "steps": steps, "cfg": cfg, "sampler": sampler, **pipe.sampler_settings(sampler),
         "split": split, "model": _shown(pipe.source),
-        "length": length, "prompt_set": prompt_set, "seconds": round(time.perf_counter() - started, 1)},
+        "length": length, "length_band": AUTO_LENGTH_BAND if length == "auto" else None, "prompt_set": prompt_set, "seconds": round(time.perf_counter() - started, 1)},
         "summary": summary(rows, classifier)}
 
 
@@ -331,11 +332,21 @@ def _classified_cell(c: dict) -> str:
     return cell + (f", style {c['style_correct']}/{c['total']}" if "style_correct" in c else "")
 
 
+def describe_length(settings: dict) -> str:
+    """How a report names its length setting (reports from before the band record "auto" without one)."""
+    length, band = settings.get("length"), settings.get("length_band")
+    if length == "prior":
+        return "the length prior"
+    if length == "auto" and band:
+        return f"auto length held within ×/÷{band:g} of the length prior"
+    return "auto length (the model's own)" if length == "model" else "auto length"
+
+
 def report_markdown(results: dict) -> str:
     s = results["settings"]
     lines = ["# Fidelity per class", "",
              f"Model `{s['model']}`; held-out paraphrases (set {s.get('prompt_set', 'a')}) × {s['seeds']} seeds, "
-             f"{'the length prior' if s.get('length') == 'prior' else 'auto length'}, {s['sampler']} "
+             f"{describe_length(s)}, {s['sampler']} "
              f"{s['steps']} steps{describe_settings(s)}, CFG {s['cfg']}; reference: real clips of the class in the prompt's style "
              f"({UNSTYLED} where it names none) from the {s['split']} split, widened to all splits, then all "
              f"styles, where fewer than {MIN_REFERENCE} are found (in brackets). Cells: generated median / real median; "

@@ -1,8 +1,8 @@
 """How well the model chooses motion lengths by itself (MoLA Fig. 4).
 
-For test captions the model generates with seconds=None, so each motion ends where its
-activation channel drops, and the lengths are compared with the real test motions' lengths
-for the same captions:
+For test captions the model generates with seconds="model", so each motion ends where its
+activation channel drops (no band holds it to the length prior), and the lengths are compared
+with the real test motions' lengths for the same captions:
 
 * Jensen-Shannon divergence between the two length histograms (bins of `bin_frames` frames
   from 0; base-2 logarithm, so 0 = identical and 1 = disjoint);
@@ -97,8 +97,8 @@ def _content_of(labels: dict | None, name: str) -> str | None:
 @torch.no_grad()
 def generate_auto_length(pipe, prompts: list[str], seed: int = 0, steps: int = 50, cfg: float = 7.5,
                          sampler: str = "ddim") -> list:
-    """Pipeline.generate(seconds=None) for several different prompts in one sampling run: each
-    motion ends where its own activation drops."""
+    """Pipeline.generate(seconds="model") for several different prompts in one sampling run: each
+    motion ends where its own activation drops (the model's lengths, before any band holds them)."""
     prompts = [pipe.check_prompt(p) for p in prompts]
     steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler, len(prompts))
     text = pipe.sampler_text(prompts, sampler)
