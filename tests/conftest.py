@@ -245,10 +245,14 @@ def tiny_student(tiny_model, tiny_dataset, tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def pipe(tiny_model):
-    """The tiny model's pipeline, loaded once and shared by the studio tests."""
+    """The tiny model's pipeline, loaded once and shared by the studio tests. It decodes without
+    latent projection: the tiny VAE, trained for seconds, maps every motion to nearly the same one,
+    which would hide what the studio's edits change."""
     from salad.pipeline import load_pipeline
 
-    return load_pipeline(tiny_model)
+    pipe = load_pipeline(tiny_model)
+    pipe.set_projections(0)
+    return pipe
 
 
 @contextmanager

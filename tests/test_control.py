@@ -264,13 +264,16 @@ def test_time_travel_noise_shared_across_rows_and_model_hook():
 
 @contextlib.contextmanager
 def deterministic_ddim(pipe):
-    """Guided control samples with the deterministic DDIM and plain guidance: plain runs to compare with."""
-    kept = pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff
+    """Guided control samples with the deterministic DDIM and plain guidance, and decodes without
+    projection: plain runs to compare with."""
+    kept, projections = (pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff), pipe.projections
     pipe.set_sampling(ddim_eta=0.0, cfg_rescale=0.0, cfg_cutoff=0.0)
+    pipe.set_projections(0)
     try:
         yield pipe
     finally:
         pipe.set_sampling(*kept)
+        pipe.set_projections(projections)
 
 
 def test_control_follows_targets_and_leaves_unmasked_joints_free(pipe):
@@ -287,6 +290,7 @@ def test_control_follows_targets_and_leaves_unmasked_joints_free(pipe):
     assert after < before * 0.8, (before, after)
     assert guided.info["control_mean_error_m"] == pytest.approx(control_errors(guided.joints, sig).mean())
     assert guided.info["control_refine_steps"] == 50           # the teacher's default; the student's is lower
+    assert guided.info["projections"] == 0                     # the targets are met through the decoder as is
     # targets of unmasked joints are ignored entirely: moving them changes nothing
     scrambled = targets.copy()
     scrambled[:, 1:] += np.random.default_rng(0).normal(size=scrambled[:, 1:].shape)

@@ -87,6 +87,28 @@ def test_cli_generate_writes_files(tiny_model, tmp_path, cli):
     assert code == 2 and err.startswith("salad: error: seconds must be between")  # no bar before it
 
 
+def test_generated_motions_go_through_the_vae_once_more_before_the_last_decode(tiny_model):
+    import torch
+
+    from salad.pipeline import LATENT_PROJECTIONS
+    pipe = load_pipeline(tiny_model)
+    projected = pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3)
+    assert projected.info["projections"] == LATENT_PROJECTIONS == 1
+    assert pipe.sampler_settings("consistency") == {"projections": 1}
+    pipe.set_projections(0)
+    plain = pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3)
+    assert plain.info["projections"] == 0 and not np.allclose(plain.features, projected.features, atol=1e-3)
+    # one projection: the decoded motion encoded to its posterior mean and decoded again
+    with torch.no_grad():
+        mu, _ = pipe.vae.encode(torch.from_numpy(pipe.normalizer.normalize(plain.features)).float()[None])
+        again = pipe.normalizer.denormalize(pipe.vae.decode(mu)[0][0].numpy())
+    assert np.allclose(projected.features, again, atol=1e-3)
+    for bad in (-1, 9, 1.5, True, "1"):
+        with pytest.raises(ValueError, match="projections must be an integer in 0..8"):
+            pipe.set_projections(bad)
+    assert pipe.projections == 0
+
+
 def test_generate_batch_with_mixed_lengths(tiny_model):
     pipe = load_pipeline(tiny_model)
     out = pipe.generate_batch(["a person walks forward", "someone turns left while walking"], [24, 36], seed=1,
@@ -124,6 +146,8 @@ def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tin
     # both edit branches draw the same fresh noise as a plain generation of the source
     res = pipe.edit("a person walks forward", mode="mirror", mirror="all", **walk)
     np.testing.assert_allclose(res.source.joints, a.joints, atol=1e-3)
+    pipe.set_projections(0)       # the sampler's own latents: the tiny VAE's projection pulls both to one motion
+    a = pipe.generate("a person walks forward", **walk)
     pipe.set_sampling(ddim_eta=0.0, cfg_rescale=0.0)
     assert not np.allclose(pipe.generate("a person walks forward", **walk).joints, a.joints, atol=1e-3)
     for bad in ({"ddim_eta": 1.5}, {"ddim_eta": -0.1}, {"cfg_rescale": float("nan")}, {"cfg_rescale": "high"}):

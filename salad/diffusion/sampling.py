@@ -29,15 +29,19 @@ def cfg_combine(out: torch.Tensor, scale: float, rescale: float = 0.0) -> torch.
 
 def describe_settings(settings: dict) -> str:
     """Reports' words for a run's ddim_eta, cfg_rescale and cfg_cutoff (absent: the run predates them,
-    eta 0, plain guidance at every step), e.g. " (eta 1, CFG rescale 0.7, no guidance below t = 300)";
-    "" for the consistency sampler."""
-    if settings.get("sampler") == "consistency":
-        return ""
-    parts = [f"eta {settings.get('ddim_eta', 0.0):g}"] if settings.get("sampler", "ddim") == "ddim" else []
-    parts.append(f"CFG rescale {settings.get('cfg_rescale', 0.0):g}")
-    if settings.get("cfg_cutoff", 0.0) > 0:
-        parts.append(f"no guidance below t = {settings['cfg_cutoff'] * 1000:g}")
-    return f" ({', '.join(parts)})"
+    eta 0, plain guidance at every step) and its latent projections (absent or 0: none), e.g.
+    " (eta 1, CFG rescale 0.7, no guidance below t = 300, 1 VAE projection)"; the consistency sampler
+    has only the projections."""
+    parts = []
+    if settings.get("sampler") != "consistency":
+        parts = [f"eta {settings.get('ddim_eta', 0.0):g}"] if settings.get("sampler", "ddim") == "ddim" else []
+        parts.append(f"CFG rescale {settings.get('cfg_rescale', 0.0):g}")
+        if settings.get("cfg_cutoff", 0.0) > 0:
+            parts.append(f"no guidance below t = {settings['cfg_cutoff'] * 1000:g}")
+    n = settings.get("projections", 0)
+    if n:
+        parts.append(f"{n} VAE projection{'s' if n > 1 else ''}")
+    return f" ({', '.join(parts)})" if parts else ""
 
 
 def fresh_noise(x: torch.Tensor, generator: torch.Generator | list[torch.Generator] | None,

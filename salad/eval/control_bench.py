@@ -282,7 +282,8 @@ def _unconstrained_sampling(protocol: dict) -> str:
     if not settings or sampler == "consistency":
         return ""
     words = describe_settings({**settings, "sampler": sampler})
-    return f"; the Unconstrained row{words}, the guided rows deterministic with guidance at every step"
+    unprojected = " and unprojected" if settings.get("projections") else ""
+    return f"; the Unconstrained row{words}, the guided rows deterministic with guidance at every step{unprojected}"
 
 
 def markdown_report(results: dict[str, Any]) -> str:
