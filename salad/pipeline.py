@@ -313,9 +313,10 @@ class Pipeline:
                foot_lock: bool = True, length: str = "requested", project: bool = True) -> list[Motion]:
         """Latents -> motions; with frames=None each motion ends where its activation drops.
         project: the motion, cut to its length, goes through the VAE self.projections times first
-        (LATENT_PROJECTIONS; info["projections"] says how many). foot_lock cleans the joints (salad.motion.cleanup: bones held at constant length, the feet the
-        decoder marks as planted pinned): the joints carry the clean-up, the features stay the
-        decoder's output, info["foot_lock"] says what moved. info["length"] says where the length came
+        (LATENT_PROJECTIONS; info["projections"] says how many). foot_lock cleans the joints
+        (salad.motion.cleanup: bones held at constant length, the feet the decoder marks as planted
+        pinned): the joints carry the clean-up, the features stay the decoder's output,
+        info["foot_lock"] says what moved. info["length"] says where the length came
         from: "requested", "prior" (the training data's), "model" (the activation's, auto length) or
         "held" (an auto length sampled again at the edge of the prior's band)."""
         decoded, act_logits = self.vae.decode(latents / self.latent_scale)
