@@ -171,7 +171,7 @@ class Pipeline:
         lo, hi = MIN_AUTO_FRAMES / FPS, self.max_seconds
         if not math.isfinite(s) or not lo <= s <= hi:
             raise ValueError(f"seconds must be between {lo:g} and {hi:g}, got {seconds!r}")
-        return max(MIN_AUTO_FRAMES, int(round(s * FPS / 4)) * 4)
+        return self._frames_near(s)
 
     @staticmethod
     def length_source(seconds) -> str:
@@ -189,10 +189,13 @@ class Pipeline:
             return None
         return self._frames_near(prior / AUTO_LENGTH_BAND), self._frames_near(prior * AUTO_LENGTH_BAND)
 
-    def _held_length(self, seconds, prompt: str, frames: int) -> int | None:
-        """The frame count to sample again at when the auto length `frames` left the prompt's band
-        (None: keep it, also for lengths chosen otherwise)."""
-        band = self.auto_length_band(prompt) if _length_keyword(seconds) == "auto" else None
+    def _band_for(self, seconds, prompt: str) -> tuple[int, int] | None:
+        """The band an auto length must keep to, for lengths chosen by seconds="auto" (None otherwise)."""
+        return self.auto_length_band(prompt) if _length_keyword(seconds) == "auto" else None
+
+    @staticmethod
+    def _held_length(band: tuple[int, int] | None, frames: int) -> int | None:
+        """The frame count to sample again at when the auto length `frames` left `band` (None: keep it)."""
         if band is None or band[0] <= frames <= band[1]:
             return None
         return min(max(frames, band[0]), band[1])
@@ -353,8 +356,9 @@ class Pipeline:
         steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
         motions = self._generate(prompt, frames, seed, steps, cfg, sampler, batch, return_attention, progress,
                                  foot_lock, self.length_source(seconds))
+        band = self._band_for(seconds, prompt)
         for b, m in enumerate(motions):
-            held = self._held_length(seconds, prompt, m.frames)
+            held = self._held_length(band, m.frames)
             if held is not None:
                 motions[b] = self._generate(prompt, held, seed, steps, cfg, sampler, batch, return_attention,
                                             progress, foot_lock, "held", row=b)[0]
@@ -556,7 +560,7 @@ class Pipeline:
                              on_step=on_step, blend=plan.blend)
         source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock,
                                      length=self.length_source(seconds))
-        held = self._held_length(seconds, source_prompt, source.frames)
+        held = self._held_length(self._band_for(seconds, source_prompt), source.frames)
         if held is not None:         # both branches again, at the source's band edge
             again = self.edit(source_prompt, seed=seed, seconds=held / FPS, steps=steps, cfg=cfg, sampler=sampler,
                               progress=progress, foot_lock=foot_lock, spec=spec)
