@@ -293,11 +293,13 @@ class Pipeline:
 
     def denoise(self, text, noise: torch.Tensor, sampler: str, steps: int, cfg: float, auto: bool,
                 seed: int | list[int] = 0, frame_mask: torch.Tensor | None = None, shared_noise: bool = False,
-                on_step=None, blend=None) -> torch.Tensor:
+                on_step=None, blend=None, start: int = 0) -> torch.Tensor:
         """Clean latents from `noise` with `text` in sampler_text's layout. The consistency sampler
         and DDIM with ddim_eta > 0 draw fresh noise at each step seeded by `seed` (shared by all
         rows with shared_noise; a list gives each row its own seed, as if it were sampled alone).
-        blend(x) changes the latents after each step (the consistency sampler: its clean estimates)."""
+        blend(x) changes the latents after each step (the consistency sampler: its clean estimates).
+        start > 0 (ddim and consistency) begins that many steps down: `noise` is then a latent noised to
+        that step's timestep (SDEdit)."""
         if isinstance(seed, (list, tuple)):
             g = [torch.Generator().manual_seed(int(s) + 1) for s in seed]
         else:
@@ -305,11 +307,11 @@ class Pipeline:
         if sampler == "consistency":
             return consistency_sample(self.student_fn(text, auto, cfg, frame_mask), noise, self.schedule, steps,
                                       generator=g, shared_noise=shared_noise, on_step=on_step,
-                                      on_clean=None if blend is None else (lambda t, x0: blend(x0)))
+                                      on_clean=None if blend is None else (lambda t, x0: blend(x0)), start=start)
         return sample(self.model_fn(text, auto=auto, frame_mask=frame_mask), noise, self.schedule, sampler=sampler,
                       steps=steps, cfg_scale=cfg, on_step=on_step, blend=blend, generator=g, shared_noise=shared_noise,
                       eta=self.ddim_eta if sampler == "ddim" else 0.0, cfg_rescale=self.cfg_rescale,
-                      cfg_cutoff=self.cfg_cutoff)
+                      cfg_cutoff=self.cfg_cutoff, start=start)
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, frames: int | None, texts: list[str], seed: int,

@@ -159,3 +159,20 @@ def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tin
     code, err = cli("generate", "a person walks", "--model", str(tiny_model), "--ddim-eta", "2",
                         "-o", "/tmp/never.npy")
     assert code == 2 and "ddim_eta must be a number in [0, 1], got 2.0" in err
+
+
+def test_a_sampler_started_part_of_the_way_down_finishes_as_the_whole_run_would(tiny_model):
+    import torch
+    pipe = load_pipeline(tiny_model)
+    pipe.set_sampling(ddim_eta=0.0)                # deterministic steps: the tail must be the same computation
+    text = pipe.sampler_text(["a person walks forward"], "ddim")
+    noise = pipe.noise(1, 32, seed=3)
+    seen = {}
+    whole = pipe.denoise(text, noise, "ddim", 10, 7.5, auto=False, on_step=lambda i, n, x: seen.setdefault(i, x))
+    tail = pipe.denoise(text, seen[4], "ddim", 10, 7.5, auto=False, start=4)
+    torch.testing.assert_close(tail, whole, atol=1e-5, rtol=1e-5)
+    for bad in (-1, 10):
+        with pytest.raises(ValueError, match="start must be in 0..9"):
+            pipe.denoise(text, noise, "ddim", 10, 7.5, auto=False, start=bad)
+    with pytest.raises(ValueError, match="only the ddim sampler"):
+        pipe.denoise(text, noise, "dpm", 10, 7.5, auto=False, start=2)

@@ -287,3 +287,60 @@ def test_a_denoiser_trained_through_a_fine_tuned_decoder_records_the_latent_spac
     # the source's checksum, which every decoder fine-tuned on its frozen encoder lists: a sibling of `tuned`
     # (another fine-tune of the same source) fits the denoiser as well as `tuned` does
     assert task.vae_checksum == vae_checksum(source)
+
+
+def test_denoised_latents_pair_training_clips_with_what_the_denoisers_make_and_train_the_decoder(
+        tiny_student, tiny_dataset, tmp_path, cli):
+    from salad.data.dataset import MotionDataset
+    from salad.training.denoised_latents import DenoisedLatents
+
+    out = tmp_path / "denoised.safetensors"
+    code, err = cli("data", "denoised-latents", "--model", str(tiny_student), "--data", str(tiny_dataset),
+                    "--out", str(out), "--min-frames", "16", "--batch", "3")
+    assert code == 0, err
+    d = DenoisedLatents(out)
+    pipe = load_pipeline(tiny_student)
+    ds = MotionDataset(tiny_dataset, "train", max_frames=10 ** 9)
+    assert d.names == [it.name for it in ds.items]
+    assert set(d.samplers) == {"ddim", "consistency"}
+    for k, it in enumerate(ds.items):
+        z = d.latent(k)
+        assert z.shape == (min(len(it.features), pipe.canvas_frames) // 4, 7, pipe.vae.config.latent_dim)
+        assert torch.isfinite(z).all() and z.abs().sum() > 0
+    assert not any(p.name.endswith(".tmp") for p in tmp_path.iterdir())
+
+    cfg = _san_cfg(tiny_dataset, tiny_student / "vae", tmp_path / "run", lam=0.0)
+    cfg.denoised_latents, cfg.denoised_share = str(out), 0.5
+    task = VAESANTask(cfg)
+    trainer = Trainer(task, task.cfg.optim, task.cfg.run)
+    b = task.batch(trainer.rng)
+    rows = b["given_rows"]
+    assert rows.tolist() == [False, False, True, True] and (b["activation"][rows] == 1).all()
+    vae = task.model.vae.eval()
+    with torch.no_grad():
+        recon, _, _, _ = vae(b["features"], b["activation"], eps=b["eps"], z_given=b["z_given"], given_rows=rows)
+        mixed_sampled, _, _, _ = vae(b["features"], b["activation"], eps=b["eps"])
+        assert torch.allclose(recon[rows], vae.decode(b["z_given"][rows])[0], atol=1e-5)
+        assert torch.allclose(recon[~rows], mixed_sampled[~rows], atol=1e-5)
+        # each given window is the clip's own latent at the same place as its features
+        w = cfg.data.window // 4
+        hits = 0
+        for f, z in zip(b["features"][rows], b["z_given"][rows]):
+            for k, it in enumerate(ds.items):
+                real = torch.from_numpy(ds.normalizer.normalize(it.features))
+                lat = d.latent(k)
+                for s in range(len(lat) - w + 1):
+                    if torch.equal(lat[s:s + w], z):
+                        hits += torch.allclose(real[4 * s:4 * s + cfg.data.window], f)
+        assert hits == 2
+    trainer.fit()
+    assert json.loads((tmp_path / "run" / "log.jsonl").read_text().splitlines()[-1])["step"] == 2
+
+    # a file made in another latent space is refused
+    other, norm, scale, _ = load_vae(tiny_student / "vae")
+    with torch.no_grad():
+        other.to_dist.weight.add_(0.01)
+    save_vae(tmp_path / "other", other, norm, scale)
+    cfg.vae = str(tmp_path / "other")
+    with pytest.raises(ConfigError, match="another latent space"):
+        VAESANTask(cfg)

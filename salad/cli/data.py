@@ -86,6 +86,24 @@ def cmd_data_bundle(a) -> int:
     return 0
 
 
+def cmd_data_denoised_latents(a) -> int:
+    import torch
+    from ..data.dataset import MotionDataset
+    from ..pipeline import load_pipeline
+    from ..training.denoised_latents import build_denoised_latents
+    if a.batch < 1 or a.min_frames < 4:
+        raise ValueError(f"--batch must be >= 1 and --min-frames >= 4, got {a.batch} and {a.min_frames}")
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    pipe = load_pipeline(a.model)
+    data = MotionDataset(a.data, a.split, max_frames=10 ** 9, normalizer=pipe.normalizer)
+    out = build_denoised_latents(pipe, data, a.out, a.model, seed=a.seed, batch=a.batch,
+                                 student_share=a.student_share if pipe.student is not None else 0.0,
+                                 min_frames=a.min_frames)
+    print(f"wrote {out}")
+    return 0
+
+
 def add_parser(sub) -> None:
     data = sub.add_parser("data", help="build and inspect datasets").add_subparsers(dest="data_cmd", required=True)
     b = data.add_parser(
@@ -142,3 +160,21 @@ def add_parser(sub) -> None:
                         "weights cut to them (~21 MB in all; the features are computed where the bundle is read)")
     n.add_argument("--threads", type=int, default=0)
     n.set_defaults(func=cmd_data_bundle)
+    d = data.add_parser(
+        "denoised-latents", help="training clips' latents noised and denoised again by a model, for a decoder fine-tune",
+        description="Each training clip (cut to the longest motion the model makes) of at least --min-frames frames is encoded, noised part of the way and denoised again "
+                    "under one of its captions by the model's teacher (DDIM from 15-50%% of T, the pipeline's sampling "
+                    "settings) or its consistency student (its last one or two of 4 steps). `salad train vae-san` with "
+                    "denoised_latents = FILE then teaches the decoder to show the real clip from such latents.")
+    d.add_argument("--model", default="assets/model", help="model directory (default: the embedded one)")
+    d.add_argument("--data", default="data/bandai-hml", help="the dataset the model was trained on")
+    d.add_argument("--split", default="train")
+    d.add_argument("--out", required=True, help="output file (.safetensors)")
+    d.add_argument("--student-share", type=float, default=0.5,
+                   help="share of clips the student denoises when the model has one (default: 0.5)")
+    d.add_argument("--min-frames", type=int, default=64,
+                   help="shortest clip used (default: 64, the decoder fine-tune's window)")
+    d.add_argument("--batch", type=int, default=48)
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--threads", type=int, default=0)
+    d.set_defaults(func=cmd_data_denoised_latents)

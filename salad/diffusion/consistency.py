@@ -54,18 +54,22 @@ def consistency_fn(schedule: NoiseSchedule, zt: torch.Tensor, out: torch.Tensor,
 def consistency_sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, steps: int = 4,
                        generator: torch.Generator | list[torch.Generator] | None = None, shared_noise: bool = False,
                        on_clean: Callable[[int, torch.Tensor], torch.Tensor] | None = None,
-                       on_step: Callable[[int, int, torch.Tensor], None] | None = None) -> torch.Tensor:
+                       on_step: Callable[[int, int, torch.Tensor], None] | None = None,
+                       start: int = 0) -> torch.Tensor:
     """Denoise `noise` (B, ...) in `steps` student evaluations. `model(x, t)` gets the B rows
     themselves (the guidance scale is part of the model, not a second batch half).
 
     generator: one for all rows, or a list of one per row (each row then re-noises exactly as it
     would alone). shared_noise re-noises every row with the same draw, so branches that started from one
     z_T (source and edited motion) stay comparable. on_clean(t, x0) may change the clean
-    estimate made at timestep t before it is re-noised (guided control does, MPGD-style)."""
+    estimate made at timestep t before it is re-noised (guided control does, MPGD-style).
+    start > 0 skips the first evaluations: `noise` is then a latent noised to the sampler's timesteps[start]."""
     sched = schedule.sampler("consistency", steps)
     ts = [int(t) for t in sched.timesteps]
+    if not 0 <= start < len(ts):
+        raise ValueError(f"start must be in 0..{len(ts) - 1}, got {start}")
     x = noise
-    for i, t in enumerate(ts):
+    for i, t in list(enumerate(ts))[start:]:
         tt = torch.full((x.shape[0],), t, dtype=torch.long, device=x.device)
         x0 = consistency_fn(schedule, x, model(x, tt).float(), tt)
         if on_clean is not None:

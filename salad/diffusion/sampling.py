@@ -62,7 +62,7 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
            cfg_scale: float = 7.5, on_step: Callable[[int, int, torch.Tensor], None] | None = None,
            blend: Callable[[torch.Tensor], torch.Tensor] | None = None, eta: float = 0.0, cfg_rescale: float = 0.0,
            generator: torch.Generator | list[torch.Generator] | None = None,
-           shared_noise: bool = False, cfg_cutoff: float = 0.0) -> torch.Tensor:
+           shared_noise: bool = False, cfg_cutoff: float = 0.0, start: int = 0) -> torch.Tensor:
     """Denoise `noise` (B, ...) to clean latents.
 
     `model` receives 2B rows (unconditional rows first, then conditional ones) so that
@@ -73,17 +73,23 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
     Steps at t < cfg_cutoff x T take the conditional prediction alone: by then the action is laid
     down, and guidance there mostly made the feet slide. If `model` has a `conditional` attribute
     (B rows -> their conditional prediction), those steps run it instead of the 2B-row forward.
+    start > 0 ("ddim" only, whose steps keep no state) skips the first steps: `noise` is then a
+    latent noised to schedule.sampler(sampler, steps).timesteps[start] (SDEdit).
     """
     if eta < 0 or (eta > 0 and sampler != "ddim"):
         raise ValueError(f"eta must be >= 0 and needs the ddim sampler, got eta={eta} with {sampler!r}")
+    if start and sampler != "ddim":
+        raise ValueError(f"only the ddim sampler can start part of the way down, not {sampler!r}")
     if not 0.0 <= cfg_cutoff < 1.0:
         raise ValueError(f"cfg_cutoff must be in [0, 1), got {cfg_cutoff}")
     sched = schedule.sampler(sampler, steps)
+    if not 0 <= start < len(sched.timesteps):
+        raise ValueError(f"start must be in 0..{len(sched.timesteps) - 1}, got {start}")
     unguided_below = cfg_cutoff * schedule.config.train_steps
     conditional = getattr(model, "conditional", None)
     x = noise
     timesteps = sched.timesteps
-    for i, t in enumerate(timesteps):
+    for i, t in list(enumerate(timesteps))[start:]:
         tt = torch.full((2 * x.shape[0],), int(t), dtype=torch.long, device=x.device)
         guided = int(t) >= unguided_below
         if not guided and conditional is not None:

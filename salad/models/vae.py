@@ -196,22 +196,27 @@ class MotionVAE(nn.Module):
             parts[0] = parts[0][..., :-1]
         return rep.merge_joints(parts), act
 
-    def forward(self, x, activation=None, sample: bool = True, eps: torch.Tensor | None = None):
-        """eps: the reparameterisation noise, (B, T/4, 7, D); drawn here when not given."""
+    def forward(self, x, activation=None, sample: bool = True, eps: torch.Tensor | None = None,
+                z_given: torch.Tensor | None = None, given_rows: torch.Tensor | None = None):
+        """eps: the reparameterisation noise, (B, T/4, 7, D); drawn here when not given. Rows marked
+        in given_rows (B,) decode z_given (B, T/4, 7, D) instead of their encoding (a decoder
+        fine-tune on denoised latents: training/denoised_latents.py)."""
         mu, logvar = self.encode(x, activation)
         if sample:
             eps = torch.randn_like(mu) if eps is None else eps.to(mu.dtype)
             z = mu + eps * torch.exp(0.5 * logvar)
         else:
             z = mu
+        if given_rows is not None:
+            z = torch.where(given_rows.view(-1, 1, 1, 1), z_given.to(z.dtype), z)
         recon, act_logits = self.decode(z)
         return recon, act_logits, mu, logvar
 
-    def loss(self, x, activation=None, valid=None, eps=None):
+    def loss(self, x, activation=None, valid=None, eps=None, z_given=None, given_rows=None):
         """SmoothL1 reconstruction in normalised space (+ ric and velocity terms), KL, and
         BCE on the activation logits. `valid` (B, T) masks frames after a motion's end
-        out of the feature terms; the activation term sees every frame."""
-        recon, act_logits, mu, logvar = self(x, activation, eps=eps)
+        out of the feature terms; the activation term sees every frame. z_given, given_rows: as in forward."""
+        recon, act_logits, mu, logvar = self(x, activation, eps=eps, z_given=z_given, given_rows=given_rows)
         c = self.config
         if valid is None:
             valid = torch.ones(x.shape[:2], dtype=torch.bool, device=x.device)

@@ -95,6 +95,10 @@ class VAESANTrainConfig:
     # the decoder's channel width: 0 keeps the source's; more widens it, decoding exactly as the source's
     # does at the start (models/vae.py: widen_decoder)
     decoder_dim: int = 0
+    # latents the model's denoisers made from training clips (`salad data denoised-latents`), and the share of
+    # each batch decoded from them and held to the real clip instead of a posterior sample; "" = none
+    denoised_latents: str = ""
+    denoised_share: float = 0.5
     data: DataConfig = field(default_factory=DataConfig)
     discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, warmup_steps=100, grad_clip=0.0))

@@ -29,6 +29,7 @@ from ..models.vae import ENCODER_PARTS, MotionVAE, widen_decoder
 from ..motion.representation import Normalizer
 from .balance import window_weights
 from .configs import VAESANTrainConfig
+from .denoised_latents import DenoisedLatents
 from .foot_loss import velocity_errors
 
 
@@ -70,7 +71,8 @@ class AdversarialVAETraining(nn.Module):
     def forward(self, batch: dict):
         x, act = batch["features"], batch["activation"]
         valid = act > 0.5
-        total, logs, recon, _ = self.vae.loss(x, act, valid=valid, eps=batch["eps"])
+        total, logs, recon, _ = self.vae.loss(x, act, valid=valid, eps=batch["eps"], z_given=batch.get("z_given"),
+                                              given_rows=batch.get("given_rows"))
         logs["rec_total"] = logs.pop("total")
         kinematic = 0.0
         if max(self.lambda_foot, self.lambda_root, self.lambda_acc) > 0:
@@ -115,12 +117,26 @@ class VAESANTask:
                              f"the data has {self.normalizer.dim} dims")
         self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang,
                                      window_weights(self.dataset, cfg.data.balance))
+        self.denoised = DenoisedWindows(cfg.denoised_latents, self.dataset, cfg.data.window, self.sources[0]) \
+            if cfg.denoised_latents else None
+        if not 0 <= cfg.denoised_share <= 1:
+            raise ConfigError(f"denoised_share must be in [0, 1], got {cfg.denoised_share}")
         torch.manual_seed(cfg.run.seed)
         self.model = AdversarialVAETraining(vae, SANDiscriminator(cfg.discriminator), cfg.lambda_adv,
                                             cfg.lambda_foot, self.normalizer, cfg.lambda_root, cfg.lambda_acc)
 
     def batch(self, rng: np.random.Generator) -> dict:
-        b = self.sampler.batch(self.cfg.optim.batch_size, rng)
+        size = self.cfg.optim.batch_size
+        given = round(size * self.cfg.denoised_share) if self.denoised is not None else 0
+        b = self.sampler.batch(size - given, rng)
+        if given:
+            d = self.denoised.batch(given, rng)
+            rows = torch.zeros(size, dtype=torch.bool)
+            rows[size - given:] = True
+            z = torch.zeros(size, *d["z_given"].shape[1:])
+            z[size - given:] = d["z_given"]
+            b = {"features": torch.cat((b["features"], d["features"])),
+                 "activation": torch.cat((b["activation"], d["activation"])), "z_given": z, "given_rows": rows}
         B, T = b["activation"].shape
         g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
         b["eps"] = torch.randn(B, T // 4, 7, self.model.vae.config.latent_dim, generator=g)
@@ -137,6 +153,36 @@ class VAESANTask:
     def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
         save_vae(path, model.vae, self.normalizer, latent_scale=self.latent_scale,
                  meta={**meta, "train_config": to_dict(self.cfg)}, latent_sources=self.sources)
+
+
+class DenoisedWindows:
+    """Training windows of real clips paired with the same window of their denoised latent."""
+
+    def __init__(self, path: str, dataset: MotionDataset, window: int, latent_origin: str):
+        d = DenoisedLatents(path)
+        if d.latent_origin != latent_origin:
+            raise ConfigError(f"{path} was made in another latent space (VAE {d.latent_origin[:12]}, "
+                              f"this decoder's encoder is {latent_origin[:12]}): build it again from this model")
+        index = {it.name: i for i, it in enumerate(dataset.items)}
+        missing = [n for n in d.names if n not in index]
+        if missing:
+            raise ConfigError(f"{path}: {len(missing)} clips are not in the training data, e.g. {missing[0]!r}")
+        self.d, self.ds, self.window = d, dataset, window
+        self.pairs = [(k, index[n]) for k, n in enumerate(d.names) if 4 * len(d.latent(k)) >= window]
+        if not self.pairs:
+            raise ConfigError(f"{path}: no clip is {window} frames long")
+
+    def batch(self, size: int, rng: np.random.Generator) -> dict:
+        W, w = self.window, self.window // 4
+        feats = np.zeros((size, W, self.ds.dim), dtype=np.float32)
+        z = []
+        for b, p in enumerate(rng.integers(0, len(self.pairs), size=size)):
+            k, item = self.pairs[p]
+            latent = self.d.latent(k)
+            s = int(rng.integers(0, len(latent) - w + 1))
+            feats[b] = self.ds.normalizer.normalize(self.ds.items[item].features[4 * s:4 * s + W])
+            z.append(latent[s:s + w])
+        return {"features": torch.from_numpy(feats), "activation": torch.ones(size, W), "z_given": torch.stack(z)}
 
 
 def train_vae_san(a) -> int:
