@@ -9,8 +9,8 @@ distilled student, and the result is stored beside the clip it came from. The de
 so it learns to undo the denoisers' errors; the encoder and latent space stay as they are.
 
 The file is safetensors: `latents` (sum of the clips' latent frames, parts, D), unscaled (the
-VAE's own units), with `offsets` (N + 1) into it; metadata holds the clip names, their first frame,
-the sampler and noise level of each, and the latent space's checksum.
+VAE's own units), with `offsets` (N + 1) into it; metadata holds the clip names (each latent covers
+its clip from the first frame), the sampler and starting timestep of each, and the latent space's checksum.
 """
 from __future__ import annotations
 

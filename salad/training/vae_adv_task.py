@@ -117,10 +117,10 @@ class VAESANTask:
                              f"the data has {self.normalizer.dim} dims")
         self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang,
                                      window_weights(self.dataset, cfg.data.balance))
-        self.denoised = DenoisedWindows(cfg.denoised_latents, self.dataset, cfg.data.window, self.sources[0]) \
-            if cfg.denoised_latents else None
         if not 0 <= cfg.denoised_share <= 1:
             raise ConfigError(f"denoised_share must be in [0, 1], got {cfg.denoised_share}")
+        self.denoised = DenoisedWindows(cfg.denoised_latents, self.dataset, cfg.data.window, self.sources[0]) \
+            if cfg.denoised_latents else None
         torch.manual_seed(cfg.run.seed)
         self.model = AdversarialVAETraining(vae, SANDiscriminator(cfg.discriminator), cfg.lambda_adv,
                                             cfg.lambda_foot, self.normalizer, cfg.lambda_root, cfg.lambda_acc)
