@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+from itertools import groupby
 from pathlib import Path
 
 import numpy as np
@@ -67,13 +68,14 @@ def build_denoised_latents(pipe, dataset: MotionDataset, out: str | os.PathLike,
     latents: dict[int, torch.Tensor] = {}
     bar = tqdm(total=len(jobs), desc="denoised latents", disable=not show_progress)
     k = 0
-    while k < len(order):
-        first = jobs[order[k]]
-        group = [j for j in order[k:k + batch] if (jobs[j]["student"], jobs[j]["start"]) == (first["student"], first["start"])]
-        for j, z in zip(group, _denoise_group(pipe, dataset, [jobs[j] for j in group], seed + k, cfg)):
-            latents[j] = z
-        bar.update(len(group))
-        k += len(group)
+    for _, same in groupby(order, key=lambda j: (jobs[j]["student"], jobs[j]["start"])):
+        same = list(same)
+        for c in range(0, len(same), batch):
+            group = same[c:c + batch]
+            for j, z in zip(group, _denoise_group(pipe, dataset, [jobs[j] for j in group], seed + k, cfg)):
+                latents[j] = z
+            bar.update(len(group))
+            k += len(group)
     bar.close()
     zs = [latents[j] for j in range(len(jobs))]
     offsets = np.cumsum([0] + [z.shape[0] for z in zs])
@@ -104,15 +106,13 @@ def _denoise_group(pipe, dataset: MotionDataset, jobs: list[dict], seed: int, cf
     sampler, steps = ("consistency", 4) if student else ("ddim", 50)
     T = max(j["frames"] for j in jobs)
     B = len(jobs)
-    x = torch.zeros(B, T, dataset.dim)
-    for b, j in enumerate(jobs):
-        x[b, :j["frames"]] = torch.from_numpy(dataset.normalizer.normalize(dataset.items[j["item"]].features[:j["frames"]]))
     mask = torch.arange(T // 4)[None] < torch.tensor([j["frames"] for j in jobs])[:, None] // 4
     # each clip encoded alone, as the denoiser's training latents were: no padding in the encoder's view
     c = pipe.denoiser.config
     z0 = torch.zeros(B, T // 4, c.parts, c.latent_dim)
     for b, j in enumerate(jobs):
-        mu, _ = pipe.vae.encode(x[b:b + 1, :j["frames"]].to(pipe.device))
+        x = dataset.normalizer.normalize(dataset.items[j["item"]].features[:j["frames"]])
+        mu, _ = pipe.vae.encode(torch.from_numpy(x).float()[None].to(pipe.device))
         z0[b, :j["frames"] // 4] = mu[0].float().cpu() * pipe.latent_scale
     timesteps = [int(t) for t in pipe.schedule.sampler(sampler, steps).timesteps]
     start = jobs[0]["start"]
