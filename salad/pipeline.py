@@ -16,7 +16,8 @@ import torch
 from .checkpoint import CheckpointError
 from .files import REPO_ROOT
 from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, STUDENT_REFINE_STEPS,
-                                 default_repeats, guided_consistency_sample, guided_sample, position_loss)
+                                 default_repeats, guided_consistency_sample, guided_sample, planted_feet_loss,
+                                 position_loss, refine)
 from .diffusion.consistency import consistency_sample
 from .diffusion.sampling import sample
 from .diffusion.schedule import CONSISTENCY_GRID, SAMPLERS, DiffusionConfig, NoiseSchedule
@@ -33,9 +34,10 @@ from .models.vocabulary import PromptCheck
 from .precision import bf16_supported, resolve_device
 from .progress import Progress
 from .motion.cleanup import clean_motion
+from .motion.footlock import planted_mask
 from .motion.control import control_errors, make_signal
 from .motion.motion import Motion
-from .motion.representation import FPS, MIN_AUTO_FRAMES, Normalizer, features_to_joints
+from .motion.representation import CONTACT_SLICE, FPS, MIN_AUTO_FRAMES, Normalizer, features_to_joints
 
 EMBEDDED_MODEL = REPO_ROOT / "assets" / "model"
 MAX_PROMPT_CHARS = 300
@@ -58,6 +60,14 @@ AUTO_LENGTH_BAND = 1.25
 # VAE's own reconstruction level (3.80e-3 -> 5.06e-3; reconstructions 5.12e-3). Guided control and
 # real-motion edits decode without it (their targets and inputs are met through the decoder as is).
 LATENT_PROJECTIONS = 1
+# Then the feet the decoder marks as planted are made to stand still through the decoder itself: the
+# latent is refined by L-BFGS within this many loss evaluations (guidance.planted_feet_loss), so the legs
+# and the root move with the feet as the decoder would move them (the foot lock afterwards has little left
+# to do). The denoiser alone lets planted feet slide: its error builds up over the sampling steps
+# (README, *Feet*). 0 turns it off. Motions whose planted feet already move slower than
+# STILL_FEET_MPS (rms) are left as they are: standing actions cost nothing.
+FOOT_REFINE_EVALUATIONS = 20
+STILL_FEET_MPS = 0.1
 DEFAULT_STEPS = {"ddim": 50, "dpm": 50, "consistency": 4}
 # The teacher's sampling: DDIM with fresh noise at every step (eta = 1) and guidance rescaled
 # halfway to the conditional prediction's scale. The deterministic DDIM (eta = 0) blurs gait
@@ -95,6 +105,7 @@ class Pipeline:
                 m.requires_grad_(False)
         self.ddim_eta, self.cfg_rescale, self.cfg_cutoff = DDIM_ETA, CFG_RESCALE, CFG_CUTOFF
         self.projections = LATENT_PROJECTIONS
+        self.foot_refine = FOOT_REFINE_EVALUATIONS
 
     def set_sampling(self, ddim_eta: float | None = None, cfg_rescale: float | None = None,
                      cfg_cutoff: float | None = None) -> None:
@@ -121,12 +132,19 @@ class Pipeline:
             raise ValueError(f"projections must be an integer in 0..8, got {projections!r}")
         self.projections = projections
 
+    def set_foot_refine(self, evaluations: int) -> None:
+        """How many loss evaluations the planted-feet refinement of generated motions may take
+        (FOOT_REFINE_EVALUATIONS; 0: none)."""
+        if not isinstance(evaluations, int) or isinstance(evaluations, bool) or not 0 <= evaluations <= 500:
+            raise ValueError(f"foot refinement evaluations must be an integer in 0..500, got {evaluations!r}")
+        self.foot_refine = evaluations
+
     def sampler_settings(self, sampler: str) -> dict:
         """What a report should record of the sampling settings for `sampler` (the teacher's, and the
         latent projections every sampler's motions go through)."""
         guidance = {"cfg_rescale": self.cfg_rescale, "cfg_cutoff": self.cfg_cutoff}
         teacher = {"ddim": {"ddim_eta": self.ddim_eta, **guidance}, "dpm": guidance}.get(sampler, {})
-        return {**teacher, "projections": self.projections}
+        return {**teacher, "projections": self.projections, "foot_refine": self.foot_refine}
 
     # ------------------------------------------------------------ validation
     @property
@@ -332,16 +350,42 @@ class Pipeline:
             if frames is None and act_logits is not None:
                 n = end_of_motion(torch.sigmoid(act_logits[b]).cpu().numpy())
             f = decoded[b:b + 1, :n]
+            z = latents[b:b + 1, : n // 4] / self.latent_scale
             for _ in range(passes):
-                f, _ = self.vae.decode(self.vae.encode(f)[0])
+                z = self.vae.encode(f)[0]
+                f, _ = self.vae.decode(z)
+            info = {"length": "model" if frames is None else length, "projections": passes}
+            if project and self.foot_refine:
+                f, info["foot_refine"] = self.plant_feet(z, f)
             f = self.normalizer.denormalize(f[0].float()).cpu().numpy()
             joints = features_to_joints(f)
-            info = {"length": "model" if frames is None else length, "projections": passes}
             if foot_lock:
                 joints, info["foot_lock"] = clean_motion(joints, f)
             out.append(Motion(joints=joints, features=f, text=texts[b], seed=seed, info=info,
                               warnings=self.prompt_warnings(texts[b]) if texts[b] else []))
         return out
+
+    def plant_feet(self, z: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """One generated motion's latent z (1, T/4, 7, D), in the VAE's units, and the normalised
+        features decoded from it (1, T, 263) -> the features decoded from z refined so that the feet
+        the decoder marks as planted stand still (FOOT_REFINE_EVALUATIONS), and a report: the
+        planted feet's rms speed before and after, m/s, and the loss evaluations allowed (0 where the
+        feet already stood, under STILL_FEET_MPS)."""
+        def joints_of(latent: torch.Tensor) -> torch.Tensor:
+            return features_to_joints(self.normalizer.denormalize(self.vae.decode(latent)[0].float()))
+
+        phys = self.normalizer.denormalize(features[0].float())
+        joints = features_to_joints(phys)
+        mask = planted_mask(joints.cpu().numpy(), phys[:, CONTACT_SLICE].cpu().numpy())
+        steps = torch.from_numpy(mask[1:] & mask[:-1])[None].to(self.device)
+        speed = planted_feet_loss(lambda j: j, steps, joints[None], keep_weight=0.0)
+        before = float(speed(joints[None])) ** 0.5
+        if before < STILL_FEET_MPS:
+            return features, {"evaluations": 0, "planted_speed_mps": [round(before, 4)] * 2}
+        z = refine(planted_feet_loss(joints_of, steps, joints[None]), z.float().contiguous(), self.foot_refine)
+        refined = self.vae.decode(z)[0]
+        after = float(speed(features_to_joints(self.normalizer.denormalize(refined[0].float()))[None])) ** 0.5
+        return refined, {"evaluations": self.foot_refine, "planted_speed_mps": [round(before, 4), round(after, 4)]}
 
     # ------------------------------------------------------------ generation
     def generate(self, prompt: str, seconds: float | str | None = None, seed: int = 0, steps: int | None = None,

@@ -247,11 +247,13 @@ def tiny_student(tiny_model, tiny_dataset, tmp_path_factory):
 def pipe(tiny_model):
     """The tiny model's pipeline, loaded once and shared by the studio tests. It decodes without
     latent projection: the tiny VAE, trained for seconds, maps every motion to nearly the same one,
-    which would hide what the studio's edits change."""
+    which would hide what the studio's edits change; and without the planted-feet refinement, whose
+    L-BFGS through that VAE would only add time here (its tests load their own pipelines)."""
     from salad.pipeline import load_pipeline
 
     pipe = load_pipeline(tiny_model)
     pipe.set_projections(0)
+    pipe.set_foot_refine(0)
     return pipe
 
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from salad.diffusion.guidance import (default_repeats, descend, guided_sample, network_evaluations,
-                                      position_loss, refine, step_size)
+                                      planted_feet_loss, position_loss, refine, step_size)
 from salad.diffusion.schedule import NoiseSchedule
 from salad.motion.control import (PATH_PRESETS, control_errors, crop_signal, keyframe_signal, lower_body_signal,
                                   make_signal, parse_points, path_signal, preset_path, preset_points, read_keyframes,
@@ -245,6 +245,27 @@ def test_position_loss_gradient_moves_joints_towards_targets():
     assert moved[:, :, 0].norm() < before
 
 
+def test_planted_feet_loss_stills_planted_feet_and_keeps_the_rest():
+    from salad.motion import skeleton as sk
+    T = 10
+    walk = torch.zeros(1, T, 22, 3)
+    walk[..., 2] = torch.arange(T, dtype=torch.float32)[None, :, None] * 0.05      # everything glides 1 m/s forward
+    planted = torch.zeros(1, T - 1, 4)
+    planted[:, :, :2] = 1.0                                                        # the left foot should stand
+    speed2 = planted_feet_loss(lambda j: j, planted, walk, keep_weight=0.0)
+    assert float(speed2(walk)) == pytest.approx(1.0, rel=1e-4)                     # (m/s)^2 of the planted joints
+    loss = planted_feet_loss(lambda j: j, planted, walk)
+    assert float(loss(walk)) == pytest.approx(1.0, rel=1e-4)                       # nothing moved yet
+    stood = walk.clone()
+    left = list(sk.CONTACT_JOINTS[:2])
+    stood[:, :, left] = walk[:, :1, left]
+    assert float(speed2(stood)) == 0.0 and 0.0 < float(loss(stood)) < float(loss(walk))
+    refined = refine(loss, walk.clone(), iterations=50)
+    assert float(speed2(refined)) < 0.1
+    others = [j for j in range(22) if j not in left]
+    assert torch.allclose(refined[:, :, others], walk[:, :, others], atol=1e-4)    # only what must move moves
+
+
 def test_time_travel_noise_shared_across_rows_and_model_hook():
     s = NoiseSchedule()
     noise = torch.randn(1, 4, 7, 8, generator=torch.Generator().manual_seed(0)).repeat(2, 1, 1, 1)
@@ -265,15 +286,17 @@ def test_time_travel_noise_shared_across_rows_and_model_hook():
 @contextlib.contextmanager
 def deterministic_ddim(pipe):
     """Guided control samples with the deterministic DDIM and plain guidance, and decodes without
-    projection: plain runs to compare with."""
-    kept, projections = (pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff), pipe.projections
+    projection or feet refinement: plain runs to compare with."""
+    kept, projections, refine = (pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff), pipe.projections, pipe.foot_refine
     pipe.set_sampling(ddim_eta=0.0, cfg_rescale=0.0, cfg_cutoff=0.0)
     pipe.set_projections(0)
+    pipe.set_foot_refine(0)
     try:
         yield pipe
     finally:
         pipe.set_sampling(*kept)
         pipe.set_projections(projections)
+        pipe.set_foot_refine(refine)
 
 
 def test_control_follows_targets_and_leaves_unmasked_joints_free(pipe):

@@ -82,6 +82,7 @@ def test_every_sampling_path_keeps_its_tensors_on_the_pipeline_device(pipe, tiny
 def test_cpu_asked_for_is_the_default_here(pipe, tiny_model):
     on_cpu = load_pipeline(tiny_model, device="cpu")
     on_cpu.set_projections(pipe.projections)         # as the shared pipeline, which decodes without projection
+    on_cpu.set_foot_refine(pipe.foot_refine)         # and without feet refinement
     assert on_cpu.device == torch.device("cpu")
     assert all(p.device.type == "cpu" for m in (on_cpu.denoiser, on_cpu.vae, on_cpu.text_encoder)
                for p in m.parameters())

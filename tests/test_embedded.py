@@ -83,3 +83,25 @@ def test_reweighting_a_word_of_a_standing_action_keeps_its_legs_and_path_by_defa
     assert pipe.resolve_hold(EditSpec(mode="reweight", reweight={"slowly": 2.0}), walk, walk) is None
     assert pipe.resolve_hold(EditSpec(target="a person raises both hands happily"), prompt,
                              "a person raises both hands happily") is None
+
+
+def test_planted_feet_refinement_stills_a_sliding_walk_at_its_speed(pipe):
+    from salad.eval.fidelity import measure
+    prompt = "a person walks ahead while veering to the left"      # a held-out paraphrase whose feet slide
+    kept = pipe.foot_refine
+    try:
+        pipe.set_foot_refine(0)
+        raw = pipe.generate(prompt, seconds=6.0, seed=0, sampler="consistency", foot_lock=False)
+        pipe.set_foot_refine(kept)
+        refined = pipe.generate(prompt, seconds=6.0, seed=0, sampler="consistency", foot_lock=False)
+        wave = pipe.generate("a person waves their right hand", seconds=4.0, seed=0, sampler="consistency")
+    finally:
+        pipe.set_foot_refine(kept)
+    before, after = refined.info["foot_refine"]["planted_speed_mps"]
+    assert after < 0.6 * before, f"planted feet at {before:.2f} -> {after:.2f} m/s rms"
+    a, b = measure(raw.joints), measure(refined.joints)
+    assert b["still_foot_share"] >= a["still_foot_share"] + 0.15, (a["still_foot_share"], b["still_foot_share"])
+    assert abs(b["root_speed_mps"] - a["root_speed_mps"]) < 0.1 * a["root_speed_mps"], "the walk keeps its pace"
+    moved = np.linalg.norm(refined.joints - raw.joints, axis=-1).mean()
+    assert moved < 0.06, f"the motion stays itself (joints moved {moved * 100:.1f} cm on average)"
+    assert wave.info["foot_refine"]["evaluations"] == 0                # standing feet cost nothing

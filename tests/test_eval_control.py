@@ -64,9 +64,10 @@ def test_eval_control_end_to_end(tiny_model, tiny_dataset, tmp_path, capsys):
     out = tmp_path / "bench"
     a = p.parse_args(["eval-control", "--data", str(tiny_dataset), "--evaluator", str(EMBEDDED_EVALUATOR),
                       "--model", str(tiny_model), "--samples", "2", "--steps", "3", "--strength", "0,2",
-                      # the guided rows' deterministic, unprojected DDIM, so that strength 0 is the Unconstrained
-                      # row again
+                      # the guided rows' deterministic, unprojected, unrefined DDIM, so that strength 0 is the
+                      # Unconstrained row again
                       "--ddim-eta", "0", "--cfg-rescale", "0", "--cfg-cutoff", "0", "--projections", "0",
+                      "--foot-refine", "0",
                       "--out", str(out)])
     assert a.func(a) == 0
     res = json.loads((out / "results.json").read_text())

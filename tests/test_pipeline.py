@@ -29,6 +29,7 @@ def test_generate_fixed_and_auto_length(tiny_model):
 
 def test_generate_with_attention(tiny_model):
     pipe = load_pipeline(tiny_model)
+    pipe.set_foot_refine(0)        # its line search would magnify the last digits the two attention paths differ in
     m = pipe.generate("a person waves their left hand", seconds=1.6, steps=4, return_attention=True)
     att = m.attention
     assert att.words == ["a", "person", "waves", "their", "left", "hand"]
@@ -92,9 +93,10 @@ def test_generated_motions_go_through_the_vae_once_more_before_the_last_decode(t
 
     from salad.pipeline import LATENT_PROJECTIONS
     pipe = load_pipeline(tiny_model)
+    pipe.set_foot_refine(0)                 # the projection alone (the refinement after it has its own test)
     projected = pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3)
     assert projected.info["projections"] == LATENT_PROJECTIONS == 1
-    assert pipe.sampler_settings("consistency") == {"projections": 1}
+    assert pipe.sampler_settings("consistency") == {"projections": 1, "foot_refine": 0}
     pipe.set_projections(0)
     plain = pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3)
     assert plain.info["projections"] == 0 and not np.allclose(plain.features, projected.features, atol=1e-3)
@@ -109,6 +111,26 @@ def test_generated_motions_go_through_the_vae_once_more_before_the_last_decode(t
     assert pipe.projections == 0
 
 
+def test_planted_feet_refinement_setting_and_report(tiny_model):
+    from salad.pipeline import FOOT_REFINE_EVALUATIONS
+    pipe = load_pipeline(tiny_model)
+    assert pipe.foot_refine == FOOT_REFINE_EVALUATIONS > 0
+    assert pipe.sampler_settings("consistency")["foot_refine"] == FOOT_REFINE_EVALUATIONS
+    refined = pipe.generate("a person walks forward", seconds=2.0, seed=3, steps=3, foot_lock=False)
+    report = refined.info["foot_refine"]
+    before, after = report["planted_speed_mps"]
+    assert report["evaluations"] in (0, FOOT_REFINE_EVALUATIONS)
+    assert after <= before + 1e-6 and (report["evaluations"] or before == after)
+    pipe.set_foot_refine(0)
+    plain = pipe.generate("a person walks forward", seconds=2.0, seed=3, steps=3, foot_lock=False)
+    assert "foot_refine" not in plain.info
+    assert report["evaluations"] == 0 or not np.allclose(plain.features, refined.features, atol=1e-4)
+    for bad in (-1, 501, 2.0, True, "20"):
+        with pytest.raises(ValueError, match="foot refinement evaluations must be an integer in 0..500"):
+            pipe.set_foot_refine(bad)
+    assert pipe.foot_refine == 0
+
+
 def test_generate_batch_with_mixed_lengths(tiny_model):
     pipe = load_pipeline(tiny_model)
     out = pipe.generate_batch(["a person walks forward", "someone turns left while walking"], [24, 36], seed=1,
@@ -121,6 +143,7 @@ def test_generate_batch_with_mixed_lengths(tiny_model):
 
 def test_unguided_steps_skip_the_unconditional_rows_unless_a_controller_watches(tiny_model):
     pipe = load_pipeline(tiny_model)
+    pipe.set_foot_refine(0)        # its line search would magnify the last digits the two attention paths differ in
     rows = []
     hook = pipe.denoiser.register_forward_hook(lambda module, args, out: rows.append(out.shape[0]))
     walk = dict(seconds=1.6, seed=4, steps=10, foot_lock=False)
@@ -138,6 +161,7 @@ def test_unguided_steps_skip_the_unconditional_rows_unless_a_controller_watches(
 
 def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tiny_model, cli):
     pipe = load_pipeline(tiny_model)
+    pipe.set_foot_refine(0)        # an edit's source is sampled on the watched attention path (see above)
     assert (pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff) == (1.0, 0.7, 0.3)   # the defaults the model card measures
     walk = dict(seconds=1.6, seed=4, steps=6, foot_lock=False)
     a, b = pipe.generate("a person walks forward", **walk), pipe.generate("a person walks forward", **walk)

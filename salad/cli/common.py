@@ -65,7 +65,8 @@ SAMPLER_HELP = {"ddim": "DDIM, the paper's sampler", "dpm": "DPM-Solver++",
 def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SAMPLER_CHOICES,
                  teacher_options: bool = True) -> None:
     """--steps, --cfg and --sampler, for every command that samples; with teacher_options also
-    --ddim-eta, --cfg-rescale and --cfg-cutoff, and --projections (set on the pipeline with apply_sampling)."""
+    --ddim-eta, --cfg-rescale and --cfg-cutoff, --projections and --foot-refine (set on the pipeline with
+    apply_sampling)."""
     parser.add_argument("--steps", type=int, default=None,
                         help="denoising steps (default: 50 for ddim and dpm, 4 for consistency)")
     parser.add_argument("--cfg", type=float, default=7.5,
@@ -86,13 +87,20 @@ def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SA
                             help="times a generated motion goes through the VAE (decoded, encoded to its mean) "
                                  "before the last decode, with every sampler (default 1; 0: the sampler's latents "
                                  "as they are; guided control and real-motion edits decode without it)")
+        parser.add_argument("--foot-refine", type=int, default=None,
+                            help="loss evaluations with which a generated motion's latent is refined so that the "
+                                 "feet its decoder marks as planted stand still (default 20; 0: none; guided "
+                                 "control and real-motion edits decode without it)")
 
 
 def apply_sampling(pipe, a) -> None:
-    """The command's --ddim-eta, --cfg-rescale, --cfg-cutoff and --projections, checked, on the pipeline."""
+    """The command's --ddim-eta, --cfg-rescale, --cfg-cutoff, --projections and --foot-refine, checked, on
+    the pipeline."""
     pipe.set_sampling(getattr(a, "ddim_eta", None), getattr(a, "cfg_rescale", None), getattr(a, "cfg_cutoff", None))
     if getattr(a, "projections", None) is not None:
         pipe.set_projections(a.projections)
+    if getattr(a, "foot_refine", None) is not None:
+        pipe.set_foot_refine(a.foot_refine)
 
 
 def add_bvh_units(parser: argparse.ArgumentParser) -> None:

@@ -282,8 +282,9 @@ def _unconstrained_sampling(protocol: dict) -> str:
     if not settings or sampler == "consistency":
         return ""
     words = describe_settings({**settings, "sampler": sampler})
-    unprojected = " and unprojected" if settings.get("projections") else ""
-    return f"; the Unconstrained row{words}, the guided rows deterministic with guidance at every step{unprojected}"
+    skipped = "".join(f" and {w}" for w, key in (("unprojected", "projections"),
+                                                  ("without the feet refinement", "foot_refine")) if settings.get(key))
+    return f"; the Unconstrained row{words}, the guided rows deterministic with guidance at every step{skipped}"
 
 
 def markdown_report(results: dict[str, Any]) -> str:

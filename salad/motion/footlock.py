@@ -72,6 +72,12 @@ def planted_frames(joints: np.ndarray, contacts: np.ndarray, foot: str) -> np.nd
     return (prob > CONTACT_PROB) & low
 
 
+def planted_mask(joints: np.ndarray, contacts: np.ndarray) -> np.ndarray:
+    """(T, 4) bool in skeleton.CONTACT_JOINTS order: planted_frames of each foot, for both of its joints."""
+    return np.stack([planted_frames(joints, contacts, foot) for foot in LEGS for _ in CONTACT_CHANNELS[foot]],
+                    axis=1)
+
+
 def footsteps(point: np.ndarray, planted: np.ndarray, max_drift: float = MAX_PIN_DRIFT_M,
               min_len: int = MIN_CONTACT_FRAMES) -> list[tuple[int, int]]:
     """[start, end) footsteps: within each planted run, the frames around the point's slowest
