@@ -184,6 +184,7 @@ MODES = [
 def test_end_to_end_edits_with_a_trained_model(tiny_model, kw):
     from salad.pipeline import load_pipeline
     pipe = load_pipeline(tiny_model)
+    pipe.set_foot_refine(0)   # its L-BFGS through the tiny VAE magnifies the last digits batched and single rows differ in
     res = pipe.edit("a person walks forward", seed=1, seconds=1.6, steps=6, **kw)
     assert res.source.joints.shape == res.edited.joints.shape == (32, 22, 3)
     assert np.isfinite(res.edited.joints).all()
@@ -208,6 +209,7 @@ def test_held_parts_take_the_source_rows_latents():
 def test_edit_holds_the_asked_parts_of_the_source_latents(tiny_model, hold):
     from salad.pipeline import load_pipeline
     pipe = load_pipeline(tiny_model)
+    pipe.set_foot_refine(0)   # its L-BFGS through the tiny VAE magnifies the last digits batched and single rows differ in
     seen = {}
     decode = pipe.decode
 
@@ -245,6 +247,7 @@ def test_holding_parts_is_refused_where_latents_are_not_blended(tiny_model):
 def test_swap_with_tau_at_the_start_is_target_only_generation(tiny_model):
     from salad.pipeline import load_pipeline
     pipe = load_pipeline(tiny_model)
+    pipe.set_foot_refine(0)   # its L-BFGS through the tiny VAE magnifies the last digits batched and single rows differ in
     res = pipe.edit("a person walks forward", "a person runs forward", mode="swap", tau=1.0, self_inject=0.0,
                     seed=2, seconds=1.2, steps=5)
     target_only = pipe.generate("a person runs forward", seconds=1.2, seed=2, steps=5)
