@@ -84,6 +84,11 @@ class Result:
         if remove:
             shutil.rmtree(self.folder, ignore_errors=True)
 
+    def forget(self, key: tuple) -> None:
+        """Drop what is stored under `key` (a view of motions that have since changed)."""
+        with self._lock:
+            self._cache.pop(key, None)
+
     def peek(self, key: tuple, default: Any = None) -> Any:
         """The value stored under `key` without making it: `default` when there is none yet (or
         its file has since disappeared)."""

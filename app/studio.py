@@ -5,7 +5,11 @@ picture through salad.render.
 
 A result's video comes in two renders: a preview without antialiasing at about half the pixels
 (a third of the time), made with the result and shown at once, and the antialiased MP4 at full
-size, the one among the downloads, made on request (`full_video`) and kept on the result."""
+size, the one among the downloads, made on request (`full_video`) and kept on the result.
+Generated and edited motions are previewed before their planted-feet refinement (a decoder
+forward and backward per L-BFGS evaluation: about as long again as the rest of the request on
+the student); `refine_feet` runs it before the full video, and only then are their motion files
+written."""
 from __future__ import annotations
 
 import logging
@@ -101,6 +105,12 @@ def word_tint(att_word: np.ndarray) -> np.ndarray:
     per_joint = np.asarray(att_word, dtype=np.float64)[sk.PART_OF_JOINT].T
     top = per_joint.max()
     return np.clip(per_joint / top, 0.0, 1.0) if top > 0 else np.zeros_like(per_joint)
+
+
+def refinement_pending(result: Result) -> bool:
+    """Whether a result's motions still wait for their planted-feet refinement (they keep their
+    latents until Studio.refine_feet)."""
+    return any(m is not None and m.latent is not None for m in (result.motion, result.source))
 
 
 def offered_samplers(pipe) -> tuple[str, ...]:
@@ -213,10 +223,39 @@ class Studio:
         folder = session.new_folder()
         motion, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.generate(
             req.prompt, seconds=req.seconds, seed=req.seed, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
-            return_attention=True, progress=report, foot_lock=req.foot_lock))
-        saved = file_writer.submit(save_motion, motion, folder, file_stem(req))
+            return_attention=True, progress=report, foot_lock=req.foot_lock, foot_refine=False))
         result = Result(req, motion, folder, {}, timings)
-        return self._finish(session, result, [saved], progress)
+        saved = [] if refinement_pending(result) else [file_writer.submit(save_motion, motion, folder, file_stem(req))]
+        return self._finish(session, result, saved, progress)
+
+    def refine_feet(self, result: Result, progress: StageProgress = quiet) -> None:
+        """Refine the planted feet of a result's motions where that was deferred
+        (refinement_pending), then write their motion files; the skeleton view is built again
+        from the refined motion. Runs once per result, whoever asks first."""
+        def make() -> bool:
+            with self._model_lock:
+                if not refinement_pending(result):        # another request finished it meanwhile
+                    return True
+                progress("refining the planted feet", 0, 1)
+                t0 = time.perf_counter()
+                motion, source = self.pipe.refine_feet(result.motion), result.source
+                if source is not None:
+                    source = self.pipe.refine_feet(source)
+                result.timings["refine_s"] = time.perf_counter() - t0
+                result.motion, result.source = motion, source
+            result.forget(("skeleton",))
+            stem = file_stem(result.request)
+            if result.kind == "edit":
+                files = save_motion(source, result.folder, f"{stem}_source", "source_") | save_motion(
+                    motion, result.folder, f"{stem}_edited", "edited_")
+            else:
+                files = save_motion(motion, result.folder, stem)
+            result.files = result.files | files
+            progress("refining the planted feet", 1, 1)
+            return True
+
+        if refinement_pending(result):
+            result.cached(("feet refined",), make)
 
     # ------------------------------------------------------------ videos
     def full_video(self, result: Result, progress: StageProgress = quiet) -> Path:
@@ -226,6 +265,7 @@ class Studio:
             return result.files["mp4"]
 
         def make() -> Path:
+            self.refine_feet(result, progress)
             t0 = time.perf_counter()
             path = self._render(result, video_path(result), True, progress)
             result.timings["full_render_s"] = time.perf_counter() - t0
@@ -292,6 +332,7 @@ class Studio:
         from salad.render import render_video
 
         def make() -> Path:
+            self.refine_feet(result, progress)
             word = result.motion.attention.words[req.word]
             tint = word_tint(self.aggregate(result, req)[req.word])
             name = f"{file_stem(result.request)}_word{req.word}-{re.sub(r'[^a-z0-9]+', '', word)[:16]}" \
@@ -312,12 +353,13 @@ class Studio:
         folder = session.new_folder()
         res, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.edit(
             req.source, seed=req.seed, seconds=req.seconds, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
-            progress=report, foot_lock=req.foot_lock, spec=req.spec))
+            progress=report, foot_lock=req.foot_lock, spec=req.spec, foot_refine=False))
         stem = file_stem(req)
-        saved = [file_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
-                 file_writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
         # An unchanged source (same prompt, seed, length, sampling) reuses its rendered panel.
         result = Result(req, res.edited, folder, {}, timings, kind="edit", source=res.source, params=res.params)
+        saved = [] if refinement_pending(result) else [
+            file_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
+            file_writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
         return self._finish(session, result, saved, progress)
 
     def edit_word_map(self, result: Result) -> list[int]:
@@ -376,6 +418,7 @@ class Studio:
         from salad.render import attention_png, render_video
 
         def make() -> list[Path]:
+            self.refine_feet(result, progress)
             stem, folder = file_stem(result.request), result.folder
             src, edited = result.source, result.motion
             single = render_video(edited.joints, folder / f"{stem}_edited.mp4", fps=edited.fps, title=edited.text,

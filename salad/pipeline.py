@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import os
 from contextlib import nullcontext
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -333,10 +334,13 @@ class Pipeline:
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, frames: int | None, texts: list[str], seed: int,
-               foot_lock: bool = True, length: str = "requested", project: bool = True) -> list[Motion]:
+               foot_lock: bool = True, length: str = "requested", project: bool = True,
+               foot_refine: bool = True) -> list[Motion]:
         """Latents -> motions; with frames=None each motion ends where its activation drops.
         project: the motion, cut to its length, goes through the VAE self.projections times first
-        (LATENT_PROJECTIONS; info["projections"] says how many). foot_lock cleans the joints
+        (LATENT_PROJECTIONS; info["projections"] says how many), then the planted-feet refinement
+        (plant_feet) unless self.foot_refine is 0; foot_refine=False defers that refinement: each
+        motion keeps its latent for refine_feet. foot_lock cleans the joints
         (salad.motion.cleanup: bones held at constant length, the feet the decoder marks as planted
         pinned): the joints carry the clean-up, the features stay the decoder's output,
         info["foot_lock"] says what moved. info["length"] says where the length came
@@ -355,15 +359,38 @@ class Pipeline:
                 z = self.vae.encode(f)[0]
                 f, _ = self.vae.decode(z)
             info = {"length": "model" if frames is None else length, "projections": passes}
+            kept = None
             if project and self.foot_refine:
-                f, info["foot_refine"] = self.plant_feet(z, f)
+                if foot_refine:
+                    f, info["foot_refine"] = self.plant_feet(z, f)
+                else:
+                    kept = z.detach().clone()
             f = self.normalizer.denormalize(f[0].float()).cpu().numpy()
             joints = features_to_joints(f)
             if foot_lock:
                 joints, info["foot_lock"] = clean_motion(joints, f)
             out.append(Motion(joints=joints, features=f, text=texts[b], seed=seed, info=info,
-                              warnings=self.prompt_warnings(texts[b]) if texts[b] else []))
+                              warnings=self.prompt_warnings(texts[b]) if texts[b] else [], latent=kept))
         return out
+
+    @torch.no_grad()
+    def refine_feet(self, motion: Motion) -> Motion:
+        """A motion generated or edited with foot_refine=False -> the motion that call would have
+        returned with it: its planted feet refined through the decoder (plant_feet), the foot lock
+        applied again where the motion had it. A motion without a kept latent (already refined, or
+        from a path that decodes without the refinement) comes back as it is."""
+        if motion.latent is None:
+            return motion
+        if not self.foot_refine:
+            return replace(motion, latent=None)
+        normalised = torch.from_numpy(self.normalizer.normalize(motion.features)).float()[None].to(self.device)
+        refined, report = self.plant_feet(motion.latent.to(self.device), normalised)
+        features = self.normalizer.denormalize(refined[0].float()).cpu().numpy()
+        joints = features_to_joints(features)
+        info = dict(motion.info, foot_refine=report)
+        if "foot_lock" in motion.info:
+            joints, info["foot_lock"] = clean_motion(joints, features)
+        return replace(motion, joints=joints, features=features, info=info, latent=None)
 
     def plant_feet(self, z: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, dict]:
         """One generated motion's latent z (1, T/4, 7, D), in the VAE's units, and the normalised
@@ -390,29 +417,31 @@ class Pipeline:
     # ------------------------------------------------------------ generation
     def generate(self, prompt: str, seconds: float | str | None = None, seed: int = 0, steps: int | None = None,
                  cfg: float = 7.5, sampler: str = "ddim", batch: int = 1, return_attention: bool = False,
-                 progress: Progress | None = None, foot_lock: bool = True):
+                 progress: Progress | None = None, foot_lock: bool = True, foot_refine: bool = True):
         """Text -> Motion (or a list of `batch` motions). seconds=None (or "auto") lets the model choose the
         length within a band around the training data's (a motion that ends outside it is sampled again
         at its edge, as with seconds = that length), "model" takes the model's own, "prior" the
         training data's (frames_for); foot_lock=False returns the decoder's joints without the foot
-        clean-up. sampler: "ddim" (the paper's), "dpm" (DPM-Solver++) or "consistency" (the distilled
-        student, 1-4 steps, one forward per step); steps=None is the sampler's default (50, 50, 4)."""
+        clean-up; foot_refine=False returns them before the planted-feet refinement, which
+        refine_feet(motion) then runs (a preview first). sampler: "ddim" (the paper's), "dpm"
+        (DPM-Solver++) or "consistency" (the distilled student, 1-4 steps, one forward per step);
+        steps=None is the sampler's default (50, 50, 4)."""
         prompt = self.check_prompt(prompt)
         frames = self.frames_for(seconds, prompt)
         steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
         motions = self._generate(prompt, frames, seed, steps, cfg, sampler, batch, return_attention, progress,
-                                 foot_lock, self.length_source(seconds))
+                                 foot_lock, self.length_source(seconds), foot_refine=foot_refine)
         band = self._band_for(seconds, prompt)
         for b, m in enumerate(motions):
             held = self._held_length(band, m.frames)
             if held is not None:
                 motions[b] = self._generate(prompt, held, seed, steps, cfg, sampler, batch, return_attention,
-                                            progress, foot_lock, "held", row=b)[0]
+                                            progress, foot_lock, "held", row=b, foot_refine=foot_refine)[0]
         return motions[0] if batch == 1 else motions
 
     def _generate(self, prompt: str, frames: int | None, seed: int, steps: int, cfg: float, sampler: str,
                   batch: int, return_attention: bool, progress: Progress | None, foot_lock: bool, length: str,
-                  row: int | None = None) -> list[Motion]:
+                  row: int | None = None, foot_refine: bool = True) -> list[Motion]:
         """generate's sampling, on checked arguments; row: only that row of the batch's noise."""
         canvas = frames or self.canvas_frames
         noise = self.noise(batch, canvas, seed)
@@ -424,7 +453,7 @@ class Pipeline:
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
         with self.network(sampler).controlled(store):
             z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, on_step=on_step)
-        motions = self.decode(z, frames, [prompt] * batch, seed, foot_lock, length=length)
+        motions = self.decode(z, frames, [prompt] * batch, seed, foot_lock, length=length, foot_refine=foot_refine)
         if store is not None:
             for b, m in enumerate(motions):
                 m.attention = store.maps(b, frames=m.frames)
@@ -572,7 +601,7 @@ class Pipeline:
              seconds: float | str | None = None, steps: int | None = None, cfg: float = 7.5, sampler: str = "ddim",
              tau: float | None = None, reweight: dict[str, float] | None = None, mirror: str | None = None,
              self_inject: float = DEFAULT_SELF_INJECT, hold: str | None = "auto", progress: Progress | None = None,
-             foot_lock: bool = True, spec: EditSpec | None = None) -> EditResult:
+             foot_lock: bool = True, spec: EditSpec | None = None, foot_refine: bool = True) -> EditResult:
         """Zero-shot edit by cross-attention modulation (SALAD Algorithm 1).
 
         mode: "swap" (target_prompt replaces words; the source's maps lead while the
@@ -585,6 +614,7 @@ class Pipeline:
         Source and edited branches, with their CFG rows, run in one batched forward
         from the same noise. Returns both motions and both attention maps.
         The edit may instead come as spec=EditSpec(...) (salad.editing.spec), without those keywords.
+        foot_refine=False: both motions come before the planted-feet refinement (see generate).
         """
         spec = EditSpec.from_arguments(spec, mode=mode, target=target_prompt, tau=tau, reweight=reweight,
                                        mirror=mirror, self_inject=self_inject, hold=hold)
@@ -605,11 +635,11 @@ class Pipeline:
             z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, shared_noise=True,
                              on_step=on_step, blend=plan.blend)
         source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock,
-                                     length=self.length_source(seconds))
+                                     length=self.length_source(seconds), foot_refine=foot_refine)
         held = self._held_length(self._band_for(seconds, source_prompt), source.frames)
         if held is not None:         # both branches again, at the source's band edge
             again = self.edit(source_prompt, seed=seed, seconds=held / FPS, steps=steps, cfg=cfg, sampler=sampler,
-                              progress=progress, foot_lock=foot_lock, spec=spec)
+                              progress=progress, foot_lock=foot_lock, spec=spec, foot_refine=foot_refine)
             again.source.info["length"] = again.edited.info["length"] = "held"
             return again
         source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)

@@ -26,7 +26,7 @@ from app.figures import frames_to_restyle_slider, plot_data
 from app.session import KEEP_RESULTS, Result, ResultGone, Session
 from app.studio import Studio, file_stem, word_tint
 from app.ui.handlers import word_choices
-from app.validation import GenerateRequest, parse_attention, parse_generate
+from app.validation import EditRequest, GenerateRequest, parse_attention, parse_generate
 from app.workspace import Workspace
 from conftest import free_port, mp4_frames, serve_studio, synthetic_walk
 
@@ -88,7 +88,8 @@ def test_generate_returns_video_figure_and_files(client, pipe):
     assert heatmap is None and word_video is None
 
     # the chained event: the antialiased MP4 takes the preview's place and leads the downloads
-    full, listed = client.predict("cm", api_name="/generate_video")
+    full, listed, skeleton, summary = client.predict("cm", api_name="/generate_video")
+    assert skeleton is not None and "Sampled in" in summary, "the 3D view and summary of the motion as refined"
     assert Path(full).name == f"{stem}.mp4" and [Path(f).name for f in listed] == [f"{stem}.mp4"] + names
     full_frames = mp4_frames(full)
     assert full_frames.shape == (32, 448, 448, 3), "the full video, at full size"
@@ -98,13 +99,13 @@ def test_an_identical_request_shows_its_full_video_without_rendering_again(serve
     _, studio_app = server
     first = generate(client, "a person bows", seconds=1.2, seed=21)
     assert Path(first[0]).name.endswith("_preview.mp4")
-    full, _ = client.predict("cm", api_name="/generate_video")
+    full, *_ = client.predict("cm", api_name="/generate_video")
     on_server = next(studio_app.workspace.sessions.rglob(Path(full).name))
     mtime = on_server.stat().st_mtime_ns
     again = generate(client, "a person bows", seconds=1.2, seed=21)
     assert Path(again[0]).name == Path(full).name, "answered with the full video rendered before"
     assert Path(again[3][0]).name == Path(full).name and "shown again without sampling" in again[2]
-    full_again, listed = client.predict("cm", api_name="/generate_video")
+    full_again, listed, *_ = client.predict("cm", api_name="/generate_video")
     assert Path(full_again).name == Path(full).name and len(listed) == 5
     assert on_server.stat().st_mtime_ns == mtime, "not rendered again"
     assert len(list(on_server.parent.glob("*.mp4"))) == 2, "one preview, one full video"
@@ -131,7 +132,7 @@ def test_bvh_downloads_come_in_the_chosen_units(client):
     np.testing.assert_allclose(np.array(offsets(cm)), 100 * np.array(offsets(files[0])), atol=1e-3)
     assert Path(client.predict("cm", api_name="/bvh_units")[0]).name == cm.name
     # the full video's event relists the downloads in the chosen units, its MP4 first
-    _, listed = client.predict("m", api_name="/generate_video")
+    _, listed, *_ = client.predict("m", api_name="/generate_video")
     assert [Path(f).name for f in listed][:2] == [cm.stem + ".mp4", cm.stem + "_m.bvh"] and len(listed) == 5
     with pytest.raises(AppError, match="BVH units must be one of cm, m"):
         client.predict("inch", api_name="/bvh_units")
@@ -469,6 +470,49 @@ def test_sessions_keep_recent_results_and_cache_renders(pipe, tmp_path):
         assert studio.word_video(current, areq).exists()
         session.close()
         assert not session.folder.exists()
+    finally:
+        ws.close()
+
+
+def test_the_preview_shows_the_motion_before_its_feet_are_refined_and_the_rest_after(tiny_model, tmp_path):
+    from app.studio import refinement_pending
+    from app.ui.summaries import summary_markdown
+    from salad.pipeline import load_pipeline
+
+    pipe = load_pipeline(tiny_model)                         # with the planted-feet refinement (the default)
+    ws = Workspace(tmp_path)
+    studio = Studio(pipe, ws)
+    try:
+        session = studio.session(None, "client")
+        req = GenerateRequest("a person walks forward", 2.0, 3, 2, 7.5, "ddim")
+        result = studio.generate(session, req)
+        preview = result.motion
+        assert refinement_pending(result) and "foot_refine" not in preview.info
+        assert studio.downloads(result) == [], "no motion files before the refinement"
+        assert "refined with the full video" in summary_markdown(result)
+        first_view = studio.skeleton_figure(result)
+        full = studio.full_video(result)
+        assert not refinement_pending(result) and result.motion is not preview and result.timings["refine_s"] > 0
+        report = result.motion.info["foot_refine"]
+        assert report["evaluations"] in (0, pipe.foot_refine) and "refined with the full video" not in \
+            summary_markdown(result)
+        stem = file_stem(req)
+        assert [p.name for p in studio.downloads(result)] == [full.name, f"{stem}.bvh", f"{stem}_joints.npy",
+                                                              f"{stem}_features.npy", f"{stem}.npz"]
+        np.testing.assert_array_equal(np.load(result.files["npy"]), result.motion.joints.astype(np.float32))
+        # the refined motion is the pipeline's own refinement of the preview's, and the 3D view follows it
+        np.testing.assert_allclose(pipe.refine_feet(preview).joints, result.motion.joints, atol=1e-5)
+        assert studio.skeleton_figure(result) is not first_view
+        took, written = result.timings["refine_s"], result.files["npy"].stat().st_mtime_ns
+        studio.refine_feet(result)                                # done once: nothing is written again
+        assert result.timings["refine_s"] == took and result.files["npy"].stat().st_mtime_ns == written
+        # an edit defers both of its motions
+        edited = studio.edit(session, EditRequest("a person walks forward", "a person runs forward", "swap", 0.8,
+                                                  (), None, 0.0, None, 2.0, 4, 2, 7.5, "ddim"))
+        assert refinement_pending(edited) and studio.downloads(edited) == []
+        studio.full_video(edited)
+        assert not refinement_pending(edited) and len(studio.downloads(edited)) == 9
+        assert "foot_refine" in edited.motion.info and "foot_refine" in edited.source.info
     finally:
         ws.close()
 

@@ -88,7 +88,8 @@ def test_word_swap_gives_a_side_by_side_video_both_maps_and_files(client, pipe):
 
     # The chained events: the antialiased side-by-side MP4 replaces the preview and leads the
     # downloads, then the edited motion's own video and both attention maps join them.
-    full, listed = client.predict("cm", api_name="/edit_video")
+    full, listed, summary = client.predict("cm", api_name="/edit_video")
+    assert "Sampled both branches" in summary
     assert Path(full).name == Path(video).name.replace("_preview.mp4", ".mp4")
     assert mp4_frames(full).shape == (24, 384, 768, 3) and [Path(f).name for f in listed][0] == Path(full).name
     assert len(listed) == 9
@@ -143,7 +144,7 @@ def test_an_identical_edit_is_answered_without_sampling_again(client, server):
     assert again[0] == first[0] or Path(again[0]).read_bytes() == Path(first[0]).read_bytes()
     assert "shown again without sampling" in again[1]
     # once its full video is made, a repeat shows (and lists) it without rendering anything again
-    full, _ = client.predict("cm", api_name="/edit_video")
+    full, *_ = client.predict("cm", api_name="/edit_video")
     on_server = next(server[1].workspace.sessions.rglob(Path(full).name))
     mtime = on_server.stat().st_mtime_ns
     third = edit(client, seed=9)

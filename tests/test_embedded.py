@@ -94,9 +94,18 @@ def test_planted_feet_refinement_stills_a_sliding_walk_at_its_speed(pipe):
         raw = pipe.generate(prompt, seconds=6.0, seed=0, sampler="consistency", foot_lock=False)
         pipe.set_foot_refine(kept)
         refined = pipe.generate(prompt, seconds=6.0, seed=0, sampler="consistency", foot_lock=False)
+        deferred = pipe.generate(prompt, seconds=6.0, seed=0, sampler="consistency", foot_lock=False,
+                                 foot_refine=False)
         wave = pipe.generate("a person waves their right hand", seconds=4.0, seed=0, sampler="consistency")
     finally:
         pipe.set_foot_refine(kept)
+    # deferred (the studio's preview first): the raw motion now, the refined one from refine_feet
+    assert deferred.latent is not None and "foot_refine" not in deferred.info
+    np.testing.assert_allclose(deferred.joints, raw.joints, atol=1e-5)
+    later = pipe.refine_feet(deferred)
+    assert later.latent is None and later.info["foot_refine"] == refined.info["foot_refine"]
+    np.testing.assert_allclose(later.joints, refined.joints, atol=2e-3)
+    assert pipe.refine_feet(later) is later, "refined once"
     before, after = refined.info["foot_refine"]["planted_speed_mps"]
     assert after < 0.6 * before, f"planted feet at {before:.2f} -> {after:.2f} m/s rms"
     a, b = measure(raw.joints), measure(refined.joints)

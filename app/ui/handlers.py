@@ -135,10 +135,16 @@ class Handlers:
         return str(video), [str(p) for p in self.studio.in_bvh_units(result, self.studio.downloads(result), units)]
 
     def generate_video(self, units, state, request: gr.Request, progress=gr.Progress()):
-        return self._full_video("generate", units, state, request, progress)
+        """As _full_video, with the 3D view and the summary of the motion as refined (Studio.refine_feet)."""
+        video, files = self._full_video("generate", units, state, request, progress)
+        result = state.latest("generate")
+        return video, files, self.studio.skeleton_figure(result), summary_markdown(result)
 
     def edit_video(self, units, state, request: gr.Request, progress=gr.Progress()):
-        return self._full_video("edit", units, state, request, progress)
+        """As _full_video, with the summary of the motions as refined (Studio.refine_feet)."""
+        video, files = self._full_video("edit", units, state, request, progress)
+        result = state.latest("edit")
+        return video, files, edit_markdown(result, self.studio.edit_word_map(result))
 
     def control_video(self, units, state, request: gr.Request, progress=gr.Progress()):
         return self._full_video("control", units, state, request, progress)

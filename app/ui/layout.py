@@ -49,11 +49,13 @@ API_NAMES = ("generate", "generate_video", "attention", "attention_video", "atte
              "bvh_units", "edit_bvh_units", "control_bvh_units", "real_bvh_units")
 
 
-def _full_video(h: dict, kind: str, api_name: str, panel, made, state):
+def _full_video(h: dict, kind: str, api_name: str, panel, made, state, refreshed: tuple = ()):
     """After `made` (a result shown with its preview video): the antialiased MP4 replaces the
-    preview and joins the downloads. Renders queue apart from the views ("render"), so that a
-    word click or a relisting never waits for one; the render lock serialises them anyway."""
-    return made.success(h[api_name], [panel.bvh_units, state], [panel.video, panel.downloads], api_name=api_name,
+    preview and joins the downloads, and the `refreshed` views show the motion as refined. Renders
+    queue apart from the views ("render"), so that a word click or a relisting never waits for one;
+    the render lock serialises them anyway."""
+    return made.success(h[api_name], [panel.bvh_units, state], [panel.video, panel.downloads, *refreshed],
+                        api_name=api_name,
                         preprocess=False, concurrency_id="render", concurrency_limit=1, show_progress="minimal",
                         show_progress_on=[panel.video])
 
@@ -132,7 +134,7 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
         shown.success(h["attention_video"], attention_inputs, att.video, api_name="attention_video",
                       preprocess=False, concurrency_id="render", concurrency_limit=1, trigger_mode="always_last")
         # the preview first (with everything else), then the antialiased MP4 (the download)
-        rendered = _full_video(h, "generate", "generate_video", gen, generated, state)
+        rendered = _full_video(h, "generate", "generate_video", gen, generated, state, (gen.skeleton, gen.summary))
         _wire_units(h, "generate", "bvh_units", gen, rendered, state)
         _wire_edit(h, ed, state, settings)
         _wire_control(h, ctl, generated, state, settings)
@@ -169,7 +171,7 @@ def _wire_edit(h: dict, ed, state, settings: Settings) -> None:
                    outputs=[state, ed.video, ed.summary, ed.word, ed.source_heatmap, ed.edited_heatmap, ed.downloads],
                    api_name="edit", preprocess=False, concurrency_id="model", show_progress_on=[ed.video],
                    concurrency_limit=settings.concurrency, trigger_mode="once")
-    rendered = _full_video(h, "edit", "edit_video", ed, edited, state)
+    rendered = _full_video(h, "edit", "edit_video", ed, edited, state, (ed.summary,))
     files = rendered.success(h["edit_files"], [state], ed.downloads, api_name="edit_files", preprocess=False,
                              concurrency_id="render", concurrency_limit=1, show_progress="minimal",
                              show_progress_on=[ed.files_status])

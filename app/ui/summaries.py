@@ -24,7 +24,8 @@ def _timing(result: Result, sampled: str) -> str:
     if result.reused:
         return "Same request as before: shown again without sampling."
     waited = f", waited {t['wait_s']:.1f} s" if t.get("wait_s", 0) > 0.5 else ""
-    return f"{sampled} in {t['sample_s']:.1f} s, rendered in {t['render_s']:.1f} s{waited}."
+    refined = f", feet refined in {t['refine_s']:.1f} s" if "refine_s" in t else ""
+    return f"{sampled} in {t['sample_s']:.1f} s, rendered in {t['render_s']:.1f} s{refined}{waited}."
 
 
 def sampling_text(sampler: str, steps: int) -> str:
@@ -51,6 +52,19 @@ def warnings_block(*motions) -> str:
     return "".join(f"{line}  \n" for line in seen)
 
 
+def foot_refine_line(motion) -> str:
+    """One short line on the planted-feet refinement (motion.info["foot_refine"]), ending in a
+    Markdown line break: still to come (the preview shows the motion before it), what it did,
+    or "" when it was off or the feet already stood still."""
+    if getattr(motion, "latent", None) is not None:
+        return "Planted feet: refined with the full video (the preview shows them before).  \n"
+    report = (getattr(motion, "info", None) or {}).get("foot_refine")
+    if not isinstance(report, dict) or not report.get("evaluations"):
+        return ""
+    before, after = report["planted_speed_mps"]
+    return f"Planted feet refined: they slid at {100 * before:.0f} cm/s (rms), now {100 * after:.0f} cm/s.  \n"
+
+
 def foot_lock_line(motion) -> str:
     """One short line on what the foot lock did (salad.motion.footlock's report in
     motion.info["foot_lock"]), ending in a Markdown line break; "" when it was off."""
@@ -73,7 +87,7 @@ def summary_markdown(result: Result) -> str:
     r, m = result.request, result.motion
     length = "automatic length" if r.seconds is None else f"{r.seconds:g} s requested"
     return warnings_block(m) + (f"**{quoted(r.prompt)}** — {m.seconds:.1f} s ({m.frames} frames, {length}), "
-            f"{_sampling(r, r.sampler)}.  \n" + foot_lock_line(m) + _timing(result, "Sampled"))
+            f"{_sampling(r, r.sampler)}.  \n" + foot_refine_line(m) + foot_lock_line(m) + _timing(result, "Sampled"))
 
 
 def _word_changes(words_src: list[str], words_tgt: list[str], word_map: list[int]) -> tuple[list, list]:
@@ -115,7 +129,7 @@ def edit_markdown(result: Result, word_map: list[int]) -> str:
     return (warnings_block(src, edited) + line[:k] + line[k].upper() + line[k + 1:]
             + f".  \n**{quoted(r.edited_prompt)}**: source {src.seconds:.1f} s ({src.frames} frames), edited "
             f"{edited.seconds:.1f} s ({edited.frames} frames), {_sampling(r, r.sampler)}.  \n{moved}  \n"
-            + foot_lock_line(edited) + _timing(result, "Sampled both branches"))
+            + foot_refine_line(edited) + foot_lock_line(edited) + _timing(result, "Sampled both branches"))
 
 
 def describe_control(result: Result) -> str:

@@ -39,6 +39,9 @@ class Motion:
     # how the model took the prompt: an action or words it was not trained on, another language
     # (salad.models.vocabulary); empty when all is well
     warnings: list[str] = field(default_factory=list)
+    # the decoder's latent, kept in memory (never saved) while a refinement of the motion is
+    # still to come (Pipeline.generate / edit with foot_refine=False, then Pipeline.refine_feet)
+    latent: Any = field(default=None, repr=False)
 
     @property
     def frames(self) -> int:
