@@ -31,9 +31,13 @@ NO_STUDENT = "has no consistency student"
 
 @pytest.fixture(scope="module")
 def student_pipe(tiny_student):
+    """Without the planted-feet refinement, so that a result's motion files come with its preview
+    (the studio's deferred refinement has its own test in test_app)."""
     from salad.pipeline import load_pipeline
 
-    return load_pipeline(tiny_student)
+    pipe = load_pipeline(tiny_student)
+    pipe.set_foot_refine(0)
+    return pipe
 
 
 @pytest.fixture(scope="module")
