@@ -285,8 +285,9 @@ def test_time_travel_noise_shared_across_rows_and_model_hook():
 
 @contextlib.contextmanager
 def deterministic_ddim(pipe):
-    """Guided control samples with the deterministic DDIM and plain guidance, and decodes without
-    projection or feet refinement: plain runs to compare with."""
+    """Runs to compare with guided control at strength 0: the deterministic DDIM and plain guidance
+    it samples with, no projection (it decodes without), and no feet refinement on either side (guided
+    control's keeps its targets, so it would not match a plain one)."""
     kept, projections, refine = (pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff), pipe.projections, pipe.foot_refine
     pipe.set_sampling(ddim_eta=0.0, cfg_rescale=0.0, cfg_cutoff=0.0)
     pipe.set_projections(0)
@@ -314,6 +315,7 @@ def test_control_follows_targets_and_leaves_unmasked_joints_free(pipe):
     assert guided.info["control_mean_error_m"] == pytest.approx(control_errors(guided.joints, sig).mean())
     assert guided.info["control_refine_steps"] == 50           # the teacher's default; the student's is lower
     assert guided.info["projections"] == 0                     # the targets are met through the decoder as is
+    assert guided.info["foot_refine"]["evaluations"] in (0, pipe.foot_refine)   # its feet refined, targets kept
     # targets of unmasked joints are ignored entirely: moving them changes nothing
     scrambled = targets.copy()
     scrambled[:, 1:] += np.random.default_rng(0).normal(size=scrambled[:, 1:].shape)
@@ -321,7 +323,8 @@ def test_control_follows_targets_and_leaves_unmasked_joints_free(pipe):
                          strength=2.0)
     np.testing.assert_array_equal(again.joints, guided.joints)
     # with strength 0 guidance changes nothing at all
-    off = pipe.control("a person walks forward", signal=sig, seed=5, steps=8, strength=0.0, repeats=1)
+    with deterministic_ddim(pipe):
+        off = pipe.control("a person walks forward", signal=sig, seed=5, steps=8, strength=0.0, repeats=1)
     np.testing.assert_allclose(off.joints, free.joints, atol=5e-3)
     with pytest.raises(ValueError, match="strength"):
         pipe.control("a person walks", signal=sig, strength=-1)
@@ -334,8 +337,8 @@ def test_control_composes_with_attention_editing(pipe):
     # without guidance, the composed run is exactly the plain edit
     with deterministic_ddim(pipe):
         plain = pipe.edit(prompt, mode="mirror", mirror="upper", seed=3, seconds=1.6, steps=6)
-    off = pipe.control(prompt, signal=sig, seed=3, steps=6, strength=0.0, repeats=1,
-                       edit={"mode": "mirror", "mirror": "upper"})
+        off = pipe.control(prompt, signal=sig, seed=3, steps=6, strength=0.0, repeats=1,
+                           edit={"mode": "mirror", "mirror": "upper"})
     assert isinstance(off, EditResult)
     np.testing.assert_allclose(off.source.joints, plain.source.joints, atol=5e-3)
     np.testing.assert_allclose(off.edited.joints, plain.edited.joints, atol=5e-3)

@@ -90,7 +90,7 @@ def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SA
         parser.add_argument("--foot-refine", type=int, default=None,
                             help="loss evaluations with which a generated motion's latent is refined so that the "
                                  "feet its decoder marks as planted stand still (default 20; 0: none; guided "
-                                 "control and real-motion edits decode without it)")
+                                 "control keeps its targets meanwhile; real-motion edits decode without it)")
 
 
 def apply_sampling(pipe, a) -> None:
