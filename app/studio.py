@@ -6,9 +6,9 @@ picture through salad.render.
 A result's video comes in two renders: a preview without antialiasing at about half the pixels
 (a third of the time), made with the result and shown at once, and the antialiased MP4 at full
 size, the one among the downloads, made on request (`full_video`) and kept on the result.
-Generated and edited motions are previewed before their planted-feet refinement (a decoder
-forward and backward per L-BFGS evaluation: about as long again as the rest of the request on
-the student); `refine_feet` runs it before the full video, and only then are their motion files
+Generated, edited and guided motions are previewed before their planted-feet refinement (a
+decoder forward and backward per L-BFGS evaluation: about as long again as the rest of the request
+on the student); `refine_feet` runs it before the full video, and only then are their motion files
 written."""
 from __future__ import annotations
 
@@ -109,8 +109,8 @@ def word_tint(att_word: np.ndarray) -> np.ndarray:
 
 def refinement_pending(result: Result) -> bool:
     """Whether a result's motions still wait for their planted-feet refinement (they keep their
-    latents until Studio.refine_feet)."""
-    return any(m is not None and m.latent is not None for m in (result.motion, result.source))
+    pending refinement until Studio.refine_feet)."""
+    return any(m is not None and m.pending_refinement is not None for m in (result.motion, result.source))
 
 
 def offered_samplers(pipe) -> tuple[str, ...]:
@@ -230,8 +230,8 @@ class Studio:
 
     def refine_feet(self, result: Result, progress: StageProgress = quiet) -> None:
         """Refine the planted feet of a result's motions where that was deferred
-        (refinement_pending), then write their motion files; the skeleton view is built again
-        from the refined motion. Runs once per result, whoever asks first."""
+        (refinement_pending), then write their motion files; the skeleton and top views are built
+        again from the refined motion. Runs once per result, whoever asks first."""
         def make() -> bool:
             with self._model_lock:
                 if not refinement_pending(result):        # another request finished it meanwhile
@@ -244,6 +244,7 @@ class Studio:
                 result.timings["refine_s"] = time.perf_counter() - t0
                 result.motion, result.source = motion, source
             result.forget(("skeleton",))
+            result.forget(("top view",))
             stem = file_stem(result.request)
             if result.kind == "edit":
                 files = save_motion(source, result.folder, f"{stem}_source", "source_") | save_motion(
@@ -478,13 +479,13 @@ class Studio:
         folder = session.new_folder()
         motion, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.control(
             req.prompt, signal=signal, seed=req.seed, strength=req.strength, steps=req.steps, cfg=req.cfg,
-            sampler=req.sampler, progress=report, foot_lock=req.foot_lock))
+            sampler=req.sampler, progress=report, foot_lock=req.foot_lock, foot_refine=False))
         stem = file_stem(req)
-        saved = file_writer.submit(save_motion, motion, folder, stem)
         signal_file = file_writer.submit(lambda: {"signal": _save_npz(
             folder / f"{stem}_control.npz", targets=signal.targets, mask=signal.mask, fps=np.array(motion.fps))})
         result = Result(req, motion, folder, {}, timings, kind="control", signal=signal)
-        return self._finish(session, result, [saved, signal_file], progress)
+        saved = [] if refinement_pending(result) else [file_writer.submit(save_motion, motion, folder, stem)]
+        return self._finish(session, result, [*saved, signal_file], progress)
 
     def control_figure(self, result: Result):
         sig, m = result.signal, result.motion

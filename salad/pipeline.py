@@ -9,6 +9,7 @@ import math
 import os
 from contextlib import nullcontext
 from dataclasses import replace
+from functools import partial
 from typing import Callable
 from pathlib import Path
 
@@ -346,9 +347,9 @@ class Pipeline:
         """Latents -> motions; with frames=None each motion ends where its activation drops.
         project: the motion, cut to its length, goes through the VAE self.projections times first
         (LATENT_PROJECTIONS; info["projections"] says how many). feet: "refine" runs the planted-feet
-        refinement (plant_feet; nothing when self.foot_refine is 0), "defer" keeps each motion's latent
-        for refine_feet instead, "keep" leaves the feet as decoded; feet_also(z) (z in the VAE's units, one
-        row) joins the refinement's loss (guided control: its targets). foot_lock cleans the joints
+        refinement (plant_feet; nothing when self.foot_refine is 0), "defer" leaves it to each motion's
+        pending_refinement (refine_feet), "keep" leaves the feet as decoded; feet_also(z) (z in the VAE's
+        units, one row) joins the refinement's loss (guided control: its targets). foot_lock cleans the joints
         (salad.motion.cleanup: bones held at constant length, the feet the decoder marks as planted
         pinned): the joints carry the clean-up, the features stay the decoder's output,
         info["foot_lock"] says what moved. info["length"] says where the length came
@@ -369,37 +370,41 @@ class Pipeline:
                 z = self.vae.encode(f)[0]
                 f, _ = self.vae.decode(z)
             info = {"length": "model" if frames is None else length, "projections": passes}
-            kept = None
+            deferred = self.foot_refine and feet == "defer"
             if self.foot_refine and feet == "refine":
                 f, info["foot_refine"] = self.plant_feet(z, f, feet_also)
-            elif self.foot_refine and feet == "defer":
-                kept = z.detach().clone()
             f = self.normalizer.denormalize(f[0].float()).cpu().numpy()
             joints = features_to_joints(f)
             if foot_lock:
                 joints, info["foot_lock"] = clean_motion(joints, f)
-            out.append(Motion(joints=joints, features=f, text=texts[b], seed=seed, info=info,
-                              warnings=self.prompt_warnings(texts[b]) if texts[b] else [], latent=kept))
+            m = Motion(joints=joints, features=f, text=texts[b], seed=seed, info=info,
+                       warnings=self.prompt_warnings(texts[b]) if texts[b] else [])
+            if deferred:
+                m.pending_refinement = partial(self._refined, m, z.detach().clone(), feet_also)
+            out.append(m)
         return out
 
+    @staticmethod
+    def refine_feet(motion: Motion) -> Motion:
+        """A motion generated, edited or guided with foot_refine=False -> the motion that call would have
+        returned with it: its planted feet refined through the decoder (plant_feet), the foot lock applied
+        again where the motion had it. A motion with nothing pending (already refined, or from a path that
+        decodes without the refinement) comes back as it is."""
+        return motion if motion.pending_refinement is None else motion.pending_refinement()
+
     @torch.no_grad()
-    def refine_feet(self, motion: Motion) -> Motion:
-        """A motion generated or edited with foot_refine=False -> the motion that call would have
-        returned with it: its planted feet refined through the decoder (plant_feet), the foot lock
-        applied again where the motion had it. A motion without a kept latent (already refined, or
-        from a path that decodes without the refinement) comes back as it is."""
-        if motion.latent is None:
-            return motion
+    def _refined(self, motion: Motion, z: torch.Tensor, also=None) -> Motion:
+        """The pending refinement of `motion`, decoded from latent z (VAE units) with also() in its loss."""
         if not self.foot_refine:
-            return replace(motion, latent=None)
+            return replace(motion, pending_refinement=None)
         normalised = torch.from_numpy(self.normalizer.normalize(motion.features)).float()[None].to(self.device)
-        refined, report = self.plant_feet(motion.latent.to(self.device), normalised)
+        refined, report = self.plant_feet(z.to(self.device), normalised, also)
         features = self.normalizer.denormalize(refined[0].float()).cpu().numpy()
         joints = features_to_joints(features)
         info = dict(motion.info, foot_refine=report)
         if "foot_lock" in motion.info:
             joints, info["foot_lock"] = clean_motion(joints, features)
-        return replace(motion, joints=joints, features=features, info=info, latent=None)
+        return replace(motion, joints=joints, features=features, info=info, pending_refinement=None)
 
     def plant_feet(self, z: torch.Tensor, features: torch.Tensor,
                    also: Callable[[torch.Tensor], torch.Tensor] | None = None) -> tuple[torch.Tensor, dict]:
@@ -501,7 +506,7 @@ class Pipeline:
                 progress: Progress | None = None,
                 edit: EditSpec | dict | None = None,
                 gradient_steps: int | None = None, refine_steps: int | None = None,
-                foot_lock: bool = True) -> Motion | EditResult:
+                foot_lock: bool = True, foot_refine: bool = True) -> Motion | EditResult:
         """Text -> motion that also meets joint position targets (MoLA's training-free guidance).
 
         targets (T, 22, 3) metres and mask (T, 22) or (T, 22, 3) bool, or a ready
@@ -512,7 +517,8 @@ class Pipeline:
         on the final latent (defaults in salad.diffusion.guidance: fewer refinement steps for the
         student, which is there to be fast). sampler "ddim" (steps default 50)
         or "consistency" (the distilled student, steps default 4, no time travel: `repeats` is
-        not used).
+        not used). The planted feet are refined with the targets kept (CONTROL_FEET_TARGETS);
+        foot_refine=False leaves that to refine_feet (see generate).
 
         edit runs an attention edit during guided sampling: an EditSpec, such as
         EditSpec(mode="mirror", mirror="upper") or EditSpec(target="a person runs forward"), or a
@@ -567,14 +573,21 @@ class Pipeline:
                                   on_step=on_step)
         # the planted-feet refinement keeps the targets: their loss joins its own (CONTROL_FEET_TARGETS)
         motions = self.decode(z, frames, prompts, seed, foot_lock, project=False,
+                              feet="refine" if foot_refine else "defer",
                               feet_also=lambda latent: CONTROL_FEET_TARGETS * loss(latent * self.latent_scale))
         if not all(np.isfinite(m.joints).all() for m in motions):
             raise ValueError(f"guided sampling diverged (strength {strength}, {steps} steps): "
                                "lower the strength or use more steps")
-        for m in motions:
+
+        def note_errors(m: Motion) -> Motion:
             err = control_errors(m.joints, sig)
             m.info.update(control_mean_error_m=float(err.mean()), control_max_error_m=float(err.max()),
                           control_strength=float(strength), control_refine_steps=int(refine_steps))
+            return m
+        for m in motions:
+            note_errors(m)
+            if m.pending_refinement is not None:        # the errors of the refined motion, once it comes
+                m.pending_refinement = (lambda refine: lambda: note_errors(refine()))(m.pending_refinement)
         if plan is None:
             return motions[0]
         source, edited = motions

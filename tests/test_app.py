@@ -20,13 +20,14 @@ from gradio_client.exceptions import AppError
 
 from salad.editing.store import AttentionMaps
 from salad.files import atomic_write
+from salad.motion.control import control_errors
 from salad.motion.bvh import load_bvh
 
 from app.figures import frames_to_restyle_slider, plot_data
 from app.session import KEEP_RESULTS, Result, ResultGone, Session
 from app.studio import Studio, file_stem, word_tint
 from app.ui.handlers import word_choices
-from app.validation import EditRequest, GenerateRequest, parse_attention, parse_generate
+from app.validation import EditRequest, GenerateRequest, parse_attention, parse_control, parse_generate
 from app.workspace import Workspace
 from conftest import free_port, mp4_frames, serve_studio, synthetic_walk
 
@@ -513,6 +514,16 @@ def test_the_preview_shows_the_motion_before_its_feet_are_refined_and_the_rest_a
         studio.full_video(edited)
         assert not refinement_pending(edited) and len(studio.downloads(edited)) == 9
         assert "foot_refine" in edited.motion.info and "foot_refine" in edited.source.info
+        # and a guided one, whose summary then gives the refined motion's path error
+        creq, signal = parse_control(pipe, "a person walks forward", "path", "straight", 2.0, 1.0, None, "", "", 1.0,
+                                     0, 2, 5.0, True, "ddim")
+        guided = studio.control(session, creq, signal)
+        assert refinement_pending(guided) and [p.name for p in studio.downloads(guided)] == [f"{file_stem(creq)}"
+                                                                                            "_control.npz"]
+        studio.full_video(guided)
+        assert not refinement_pending(guided) and "foot_refine" in guided.motion.info
+        assert guided.motion.info["control_mean_error_m"] == pytest.approx(
+            control_errors(guided.motion.joints, signal).mean())
     finally:
         ws.close()
 

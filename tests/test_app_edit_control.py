@@ -188,7 +188,8 @@ def test_edit_views_need_an_edit_first(client):
 def test_path_control_renders_targets_and_reports_its_error(client, pipe):
     video, top_view, summary, files = control(client, preset="turn-left", seconds=1.2, speed=1.2, seed=2)
     assert Path(video).name.endswith("_preview.mp4") and not any(f.endswith(".mp4") for f in files)
-    full, listed = client.predict("cm", api_name="/control_video")
+    full, listed, top_view, summary = client.predict("cm", api_name="/control_video")
+    assert top_view is not None and "Sampled in" in summary
     assert Path(full).name == Path(video).name.replace("_preview.mp4", ".mp4")
     assert [Path(f).name for f in listed] == [Path(full).name] + [Path(f).name for f in files]
     for shown, size, n in ((video, 320, 12), (full, 448, 24)):

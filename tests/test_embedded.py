@@ -100,10 +100,10 @@ def test_planted_feet_refinement_stills_a_sliding_walk_at_its_speed(pipe):
     finally:
         pipe.set_foot_refine(kept)
     # deferred (the studio's preview first): the raw motion now, the refined one from refine_feet
-    assert deferred.latent is not None and "foot_refine" not in deferred.info
+    assert deferred.pending_refinement is not None and "foot_refine" not in deferred.info
     np.testing.assert_allclose(deferred.joints, raw.joints, atol=1e-5)
     later = pipe.refine_feet(deferred)
-    assert later.latent is None and later.info["foot_refine"] == refined.info["foot_refine"]
+    assert later.pending_refinement is None and later.info["foot_refine"] == refined.info["foot_refine"]
     np.testing.assert_allclose(later.joints, refined.joints, atol=2e-3)
     assert pipe.refine_feet(later) is later, "refined once"
     before, after = refined.info["foot_refine"]["planted_speed_mps"]

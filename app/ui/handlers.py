@@ -147,7 +147,10 @@ class Handlers:
         return video, files, edit_markdown(result, self.studio.edit_word_map(result))
 
     def control_video(self, units, state, request: gr.Request, progress=gr.Progress()):
-        return self._full_video("control", units, state, request, progress)
+        """As _full_video, with the top view and the summary of the motion as refined (Studio.refine_feet)."""
+        video, files = self._full_video("control", units, state, request, progress)
+        result = state.latest("control")
+        return video, files, self.studio.control_figure(result), control_markdown(result)
 
     def _request(self, result: Result, word, layers, first_step, last_step) -> AttentionRequest:
         return parse_attention(result.motion.attention, word, layers, first_step, last_step)

@@ -201,7 +201,7 @@ def _wire_control(h: dict, ctl, generated, state, settings: Settings) -> None:
                    outputs=[state, ctl.video, ctl.top_view, ctl.summary, ctl.downloads], api_name="control",
                    preprocess=False, concurrency_id="model", show_progress_on=[ctl.video],
                    concurrency_limit=settings.concurrency, trigger_mode="once")
-    rendered = _full_video(h, "control", "control_video", ctl, guided, state)
+    rendered = _full_video(h, "control", "control_video", ctl, guided, state, (ctl.top_view, ctl.summary))
     _wire_units(h, "control", "control_bvh_units", ctl, rendered, state)
 
 

@@ -56,7 +56,7 @@ def foot_refine_line(motion) -> str:
     """One short line on the planted-feet refinement (motion.info["foot_refine"]), ending in a
     Markdown line break: still to come (the preview shows the motion before it), what it did,
     or "" when it was off or the feet already stood still."""
-    if getattr(motion, "latent", None) is not None:
+    if getattr(motion, "pending_refinement", None) is not None:
         return "Planted feet: refined with the full video (the preview shows them before).  \n"
     report = (getattr(motion, "info", None) or {}).get("foot_refine")
     if not isinstance(report, dict) or not report.get("evaluations"):
@@ -153,4 +153,5 @@ def control_markdown(result: Result) -> str:
     error = (f"**control error: mean {100 * info['control_mean_error_m']:.1f} cm, "
              f"max {100 * info['control_max_error_m']:.1f} cm**" if "control_mean_error_m" in info else "")
     return warnings_block(m) + (f"{describe_control(result)} · {quoted(r.prompt)} — {m.seconds:.1f} s ({m.frames} frames), "
-            f"strength {r.strength:g}, {_sampling(r, r.sampler)}.  \n{error}  \n" + foot_lock_line(m) + _timing(result, "Sampled"))
+            f"strength {r.strength:g}, {_sampling(r, r.sampler)}.  \n{error}  \n" + foot_refine_line(m)
+            + foot_lock_line(m) + _timing(result, "Sampled"))

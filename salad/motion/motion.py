@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -39,9 +39,9 @@ class Motion:
     # how the model took the prompt: an action or words it was not trained on, another language
     # (salad.models.vocabulary); empty when all is well
     warnings: list[str] = field(default_factory=list)
-    # the decoder's latent, kept in memory (never saved) while a refinement of the motion is
-    # still to come (Pipeline.generate / edit with foot_refine=False, then Pipeline.refine_feet)
-    latent: Any = field(default=None, repr=False)
+    # the planted-feet refinement still to come (Pipeline.generate / edit / control with
+    # foot_refine=False): calling it returns the refined motion (Pipeline.refine_feet); in memory only
+    pending_refinement: Callable[[], "Motion"] | None = field(default=None, repr=False, compare=False)
 
     @property
     def frames(self) -> int:
