@@ -90,7 +90,8 @@ def test_generate_returns_video_figure_and_files(client, pipe):
 
     # the chained event: the antialiased MP4 takes the preview's place and leads the downloads
     full, listed, skeleton, summary = client.predict("cm", api_name="/generate_video")
-    assert skeleton is not None and "Sampled in" in summary, "the 3D view and summary of the motion as refined"
+    # nothing was refined on the way (this pipeline does not refine): the 3D view and summary stay as drawn
+    assert skeleton == summary == {"__type__": "update"}
     assert Path(full).name == f"{stem}.mp4" and [Path(f).name for f in listed] == [f"{stem}.mp4"] + names
     full_frames = mp4_frames(full)
     assert full_frames.shape == (32, 448, 448, 3), "the full video, at full size"
@@ -629,3 +630,22 @@ def test_raw_http_clients_get_the_error_message(server, data, message):
     assert "event: error" in stream
     payload = stream.split("event: error", 1)[1].split("data:", 1)[1].strip().splitlines()[0]
     assert payload != "null" and message in payload.lower(), payload
+
+
+def test_the_full_video_brings_the_refined_motions_views_and_files(tiny_model, tmp_path):
+    """Over a pipeline that refines the planted feet: the preview comes without motion files, and the
+    full video's event brings the files, the 3D view and the summary of the refined motion."""
+    from salad.pipeline import load_pipeline
+
+    (tmp_path / "studio").mkdir()
+    with serve_studio(load_pipeline(tiny_model), tmp_path / "studio") as (url, _):
+        client = Client(url, verbose=False, download_files=str(tmp_path / "downloads"), analytics_enabled=False)
+        first = generate(client, "a person walks forward", seconds=2.0, seed=3, steps=3)
+        assert first[3] in (None, []), "no motion files before the refinement"
+        assert "refined with the full video" in first[2]
+        full, listed, skeleton, summary = client.predict("cm", api_name="/generate_video")
+        assert "plot" in skeleton and "refined with the full video" not in summary and "feet refined in" in summary
+        assert [Path(f).suffix for f in listed] == [".mp4", ".bvh", ".npy", ".npy", ".npz"]
+        # asked again, nothing is refined on the way: the views stay
+        _, _, *views = client.predict("cm", api_name="/generate_video")
+        assert views == [{"__type__": "update"}] * 2

@@ -13,7 +13,7 @@ from .. import controls, real_edit, real_input
 from ..figures import control_top_view, note_figure
 from ..session import Result, Session
 from ..settings import DEFAULT_TAU
-from ..studio import Studio
+from ..studio import Studio, refinement_pending
 from ..validation import (
     AttentionRequest, control_signal, parse_attention, parse_bvh_units, parse_control, parse_edit, parse_generate,
     parse_real_edit, parse_word,
@@ -134,23 +134,26 @@ class Handlers:
         video = self.studio.full_video(result, _gr_progress(progress))
         return str(video), [str(p) for p in self.studio.in_bvh_units(result, self.studio.downloads(result), units)]
 
+    def _full_video_and_views(self, kind: str, views, units, state, request: gr.Request, progress) -> tuple:
+        """_full_video, then views(result) (the panel's views of the motion) when its planted feet were
+        refined on the way (Studio.refine_feet), else gr.skip() for each: a view sent again is drawn again."""
+        result = state.latest(kind) if isinstance(state, Session) else None
+        pending = result is not None and refinement_pending(result)
+        video, files = self._full_video(kind, units, state, request, progress)
+        shown = views(result)
+        return video, files, *(shown if pending else [gr.skip()] * len(shown))
+
     def generate_video(self, units, state, request: gr.Request, progress=gr.Progress()):
-        """As _full_video, with the 3D view and the summary of the motion as refined (Studio.refine_feet)."""
-        video, files = self._full_video("generate", units, state, request, progress)
-        result = state.latest("generate")
-        return video, files, self.studio.skeleton_figure(result), summary_markdown(result)
+        return self._full_video_and_views("generate", lambda r: (self.studio.skeleton_figure(r), summary_markdown(r)),
+                                          units, state, request, progress)
 
     def edit_video(self, units, state, request: gr.Request, progress=gr.Progress()):
-        """As _full_video, with the summary of the motions as refined (Studio.refine_feet)."""
-        video, files = self._full_video("edit", units, state, request, progress)
-        result = state.latest("edit")
-        return video, files, edit_markdown(result, self.studio.edit_word_map(result))
+        return self._full_video_and_views("edit", lambda r: (edit_markdown(r, self.studio.edit_word_map(r)),),
+                                          units, state, request, progress)
 
     def control_video(self, units, state, request: gr.Request, progress=gr.Progress()):
-        """As _full_video, with the top view and the summary of the motion as refined (Studio.refine_feet)."""
-        video, files = self._full_video("control", units, state, request, progress)
-        result = state.latest("control")
-        return video, files, self.studio.control_figure(result), control_markdown(result)
+        return self._full_video_and_views("control", lambda r: (self.studio.control_figure(r), control_markdown(r)),
+                                          units, state, request, progress)
 
     def _request(self, result: Result, word, layers, first_step, last_step) -> AttentionRequest:
         return parse_attention(result.motion.attention, word, layers, first_step, last_step)
