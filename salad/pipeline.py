@@ -10,8 +10,8 @@ import os
 from contextlib import nullcontext
 from dataclasses import replace
 from functools import partial
-from typing import Callable
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -411,9 +411,8 @@ class Pipeline:
         """One generated motion's latent z (1, T/4, 7, D), in the VAE's units, and the normalised
         features decoded from it (1, T, 263) -> the features decoded from z refined so that the feet
         the decoder marks as planted stand still (FOOT_REFINE_EVALUATIONS), also(z) added to the
-        loss where given, and a report: the
-        planted feet's rms speed before and after, m/s, and the loss evaluations allowed (0 where the
-        feet already stood, under STILL_FEET_MPS)."""
+        loss where given, and a report: the planted feet's rms speed before and after, m/s, and the
+        loss evaluations allowed (0 where the feet already stood, under STILL_FEET_MPS)."""
         def joints_of(latent: torch.Tensor) -> torch.Tensor:
             return features_to_joints(self.normalizer.denormalize(self.vae.decode(latent)[0].float()))
 
