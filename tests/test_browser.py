@@ -399,6 +399,8 @@ def test_at_phone_width_the_3d_view_keeps_its_legend(studio_url, page):
     page.goto(studio_url, wait_until="load")
     page.locator("#prompt textarea").fill("someone walks and turns left")
     page.locator("#generate-button").click()
+    # measured once the chained full-video event has answered: it may draw the 3D view again
+    wait_for_new_video(page, "#motion-video video", None, 448)
     plot = "#skeleton-plot .js-plotly-plot"
     page.wait_for_function(f"() => {{ const g = document.querySelector({plot!r}); return g && g.data; }}")
     page.wait_for_timeout(500)
