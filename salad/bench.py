@@ -55,11 +55,15 @@ def _paper_pipeline(bf16: bool):
 
 
 def _load(model: str, bf16: bool):
-    """On the CPU: the bench measures this machine's CPU (its matmul peak, threads and memory)."""
+    """On the CPU: the bench measures this machine's CPU (its matmul peak, threads and memory). It times
+    the sampler and one decode: the latent projection and the planted-feet refinement after it are
+    post-processing (the refinement alone costs about a second per walk), off here."""
     from .pipeline import load_pipeline
-    if model == "paper":
-        return _paper_pipeline(bf16)
-    return load_pipeline(None if model == "embedded" else model, bf16=bf16, device="cpu")
+    pipe = _paper_pipeline(bf16) if model == "paper" else load_pipeline(
+        None if model == "embedded" else model, bf16=bf16, device="cpu")
+    pipe.set_projections(0)
+    pipe.set_foot_refine(0)
+    return pipe
 
 
 def matmul_reference_ms(n: int = 1024, count: int = 50, repeats: int = 3) -> float:
@@ -98,10 +102,6 @@ def run_one(model: str, bf16: bool, batch: int, sampler: str = "ddim", steps: in
         return {"skipped": "bf16 is not supported on this CPU"}
     if sampler == "consistency" and pipe.student is None:
         return {"skipped": "the model has no consistency student"}
-    # the sampler and one decode: the latent projection and the planted-feet refinement after it are
-    # post-processing (the refinement alone costs about a second per walk), timed by neither
-    pipe.set_projections(0)
-    pipe.set_foot_refine(0)
     prompt = "a person walks forward and waves their right hand"
     pipe.generate(prompt, seconds=seconds, steps=2, sampler=sampler, batch=batch)      # warm-up: caches, kernels
     times = []
@@ -127,8 +127,6 @@ def solver_accuracy(model: str, bf16: bool, seeds: int = 4, ddim_steps=(10, 20, 
     import numpy as np
     pipe = _load(model, bf16)
     pipe.set_sampling(ddim_eta=0.0, cfg_cutoff=0.0)   # the solvers of one smooth ODE, as measured before
-    pipe.set_projections(0)                           # and their own latents: no post-processing
-    pipe.set_foot_refine(0)
     prompt = "a person walks forward and waves their right hand"
     ref = [pipe.generate(prompt, seconds=SECONDS, seed=s, steps=reference_steps).joints for s in range(seeds)]
 
