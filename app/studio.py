@@ -113,6 +113,23 @@ def refinement_pending(result: Result) -> bool:
     return any(m is not None and m.pending_refinement is not None for m in (result.motion, result.source))
 
 
+def motion_files(result: Result) -> list[tuple]:
+    """(motion, file stem, download key prefix) of each motion file set a result saves: an edit's
+    source and edited motions, else its one motion."""
+    stem = file_stem(result.request)
+    if result.kind == "edit":
+        return [(result.source, f"{stem}_source", "source_"), (result.motion, f"{stem}_edited", "edited_")]
+    return [(result.motion, stem, "")]
+
+
+def save_later(result: Result) -> list:
+    """The writes of a result's motion files on the file writer (futures), or none while its
+    refinement is pending: Studio.refine_feet writes them then."""
+    if refinement_pending(result):
+        return []
+    return [file_writer.submit(save_motion, m, result.folder, stem, prefix) for m, stem, prefix in motion_files(result)]
+
+
 def offered_samplers(pipe) -> tuple[str, ...]:
     """The samplers the studio offers over `pipe`: the teacher's, and the distilled student's
     ("consistency") when the model has one."""
@@ -225,8 +242,7 @@ class Studio:
             req.prompt, seconds=req.seconds, seed=req.seed, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
             return_attention=True, progress=report, foot_lock=req.foot_lock, foot_refine=False))
         result = Result(req, motion, folder, {}, timings)
-        saved = [] if refinement_pending(result) else [file_writer.submit(save_motion, motion, folder, file_stem(req))]
-        return self._finish(session, result, saved, progress)
+        return self._finish(session, result, save_later(result), progress)
 
     def refine_feet(self, result: Result, progress: StageProgress = quiet) -> None:
         """Refine the planted feet of a result's motions where that was deferred
@@ -245,12 +261,9 @@ class Studio:
                 result.motion, result.source = motion, source
             result.forget(("skeleton",))
             result.forget(("top view",))
-            stem = file_stem(result.request)
-            if result.kind == "edit":
-                files = save_motion(source, result.folder, f"{stem}_source", "source_") | save_motion(
-                    motion, result.folder, f"{stem}_edited", "edited_")
-            else:
-                files = save_motion(motion, result.folder, stem)
+            files = {}
+            for m, stem, prefix in motion_files(result):
+                files |= save_motion(m, result.folder, stem, prefix)
             result.files = result.files | files
             progress("refining the planted feet", 1, 1)
             return True
@@ -355,13 +368,9 @@ class Studio:
         res, timings = self.sample_locked(req.steps, progress, lambda report: self.pipe.edit(
             req.source, seed=req.seed, seconds=req.seconds, steps=req.steps, cfg=req.cfg, sampler=req.sampler,
             progress=report, foot_lock=req.foot_lock, spec=req.spec, foot_refine=False))
-        stem = file_stem(req)
         # An unchanged source (same prompt, seed, length, sampling) reuses its rendered panel.
         result = Result(req, res.edited, folder, {}, timings, kind="edit", source=res.source, params=res.params)
-        saved = [] if refinement_pending(result) else [
-            file_writer.submit(save_motion, res.source, folder, f"{stem}_source", "source_"),
-            file_writer.submit(save_motion, res.edited, folder, f"{stem}_edited", "edited_")]
-        return self._finish(session, result, saved, progress)
+        return self._finish(session, result, save_later(result), progress)
 
     def edit_word_map(self, result: Result) -> list[int]:
         """For each word of the edited prompt, the source word it corresponds to, or -1 (added)."""
@@ -484,8 +493,7 @@ class Studio:
         signal_file = file_writer.submit(lambda: {"signal": _save_npz(
             folder / f"{stem}_control.npz", targets=signal.targets, mask=signal.mask, fps=np.array(motion.fps))})
         result = Result(req, motion, folder, {}, timings, kind="control", signal=signal)
-        saved = [] if refinement_pending(result) else [file_writer.submit(save_motion, motion, folder, stem)]
-        return self._finish(session, result, [*saved, signal_file], progress)
+        return self._finish(session, result, [*save_later(result), signal_file], progress)
 
     def control_figure(self, result: Result):
         sig, m = result.signal, result.motion

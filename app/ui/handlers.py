@@ -135,24 +135,24 @@ class Handlers:
         return str(video), [str(p) for p in self.studio.in_bvh_units(result, self.studio.downloads(result), units)]
 
     def _full_video_and_views(self, kind: str, views, units, state, request: gr.Request, progress) -> tuple:
-        """_full_video, then views(result) (the panel's views of the motion) when its planted feet were
-        refined on the way (Studio.refine_feet), else gr.skip() for each: a view sent again is drawn again."""
+        """_full_video, then each of `views` (result -> one of the panel's views of the motion) when its
+        planted feet were refined on the way (Studio.refine_feet), else gr.skip(): a view sent again is
+        drawn again."""
         result = state.latest(kind) if isinstance(state, Session) else None
         pending = result is not None and refinement_pending(result)
         video, files = self._full_video(kind, units, state, request, progress)
-        shown = views(result)
-        return video, files, *(shown if pending else [gr.skip()] * len(shown))
+        return video, files, *(view(result) if pending else gr.skip() for view in views)
 
     def generate_video(self, units, state, request: gr.Request, progress=gr.Progress()):
-        return self._full_video_and_views("generate", lambda r: (self.studio.skeleton_figure(r), summary_markdown(r)),
+        return self._full_video_and_views("generate", (self.studio.skeleton_figure, summary_markdown),
                                           units, state, request, progress)
 
     def edit_video(self, units, state, request: gr.Request, progress=gr.Progress()):
-        return self._full_video_and_views("edit", lambda r: (edit_markdown(r, self.studio.edit_word_map(r)),),
+        return self._full_video_and_views("edit", (lambda r: edit_markdown(r, self.studio.edit_word_map(r)),),
                                           units, state, request, progress)
 
     def control_video(self, units, state, request: gr.Request, progress=gr.Progress()):
-        return self._full_video_and_views("control", lambda r: (self.studio.control_figure(r), control_markdown(r)),
+        return self._full_video_and_views("control", (self.studio.control_figure, control_markdown),
                                           units, state, request, progress)
 
     def _request(self, result: Result, word, layers, first_step, last_step) -> AttentionRequest:
