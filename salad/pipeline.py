@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from .allocator import keep_large_blocks
 from .checkpoint import CheckpointError
 from .files import REPO_ROOT
 from .diffusion.guidance import (DEFAULT_GRADIENT_STEPS, DEFAULT_REFINE_STEPS, STUDENT_REFINE_STEPS,
@@ -95,6 +96,8 @@ class Pipeline:
                  source: str = "", prompt_check: PromptCheck | None = None, device: str | torch.device = "auto",
                  student: Denoiser | None = None, student_info: dict | None = None):
         self.device = resolve_device(device)
+        if self.device.type == "cpu":
+            keep_large_blocks()
         self.vae, self.normalizer, self.latent_scale = vae.eval().to(self.device), normalizer, latent_scale
         self.denoiser, self.schedule = denoiser.eval().to(self.device), schedule
         self.text_encoder = text_encoder.to(self.device)

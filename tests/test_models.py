@@ -371,3 +371,36 @@ def test_atomic_save_never_leaves_partial_checkpoints(tmp_path, monkeypatch):
     doc, parts = load_checkpoint(tmp_path / "ck")
     assert doc["config"] == {"a": 1} and torch.equal(parts["w"]["x"], torch.ones(3))
     assert [p.name for p in tmp_path.iterdir()] == ["ck"]
+
+
+def test_skeleto_temporal_conv_is_its_definition_on_any_memory_layout():
+    """STConv runs on channels-last memory for speed; the result must still be the temporal
+    convolution plus the joint's own linear term plus a linear map of its neighbours' mean."""
+    from salad.models.vae import STConv
+    from salad.motion import skeleton as sk
+    torch.manual_seed(0)
+    level = sk.LEVELS[0]
+    conv = STConv(level, 8, 3)
+    x = torch.randn(2, 8, level.size, 10)
+    adj = torch.from_numpy(level.adjacency()).float()
+    mean = adj / adj.sum(1, keepdim=True)
+    padded = torch.nn.functional.pad(x, (1, 1))
+    w = conv.temporal.weight                                     # (out, in, k)
+    expected = sum(torch.einsum("oi,bijt->bojt", w[:, :, i], padded[..., i:i + 10]) for i in range(3))
+    expected = expected + conv.temporal.bias[:, None, None]
+    expected = expected + torch.einsum("oi,bijt->bojt", conv.self_proj.weight, x) + conv.self_proj.bias[:, None, None]
+    neighbours = torch.einsum("jk,bikt->bijt", mean, x)
+    expected = expected + torch.einsum("oi,bijt->bojt", conv.neighbour_proj.weight, neighbours) \
+        + conv.neighbour_proj.bias[:, None, None]
+    for layout in (x, x.contiguous(memory_format=torch.channels_last), x.transpose(2, 3).contiguous().transpose(2, 3)):
+        assert torch.allclose(conv(layout), expected, atol=1e-5)
+
+
+def test_the_allocator_keeps_large_blocks_where_glibc_allows_it():
+    import ctypes.util
+    import sys
+    from salad.allocator import keep_large_blocks
+    kept = keep_large_blocks()
+    if sys.platform.startswith("linux") and "libc.so" in (ctypes.util.find_library("c") or ""):
+        assert kept
+    assert keep_large_blocks() == kept      # once per process, idempotent
