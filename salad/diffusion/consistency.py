@@ -37,8 +37,7 @@ def sampler_timesteps(schedule: NoiseSchedule, max_steps: int = 4) -> list[int]:
 
 def boundary_scalings(schedule: NoiseSchedule, t: torch.Tensor, like: torch.Tensor):
     """(c_skip, c_out) at timesteps t (B,), shaped to broadcast against `like`."""
-    sched = schedule.sampler("consistency", 1)
-    c_skip, c_out = sched.get_scalings_for_boundary_condition_discrete(t.double().cpu())
+    c_skip, c_out = schedule.boundary_scalings(t)
     shape = (-1,) + (1,) * (like.ndim - 1)
     return (c_skip.view(shape).to(like.device, like.dtype), c_out.view(shape).to(like.device, like.dtype))
 

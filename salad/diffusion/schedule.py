@@ -38,6 +38,7 @@ class NoiseSchedule:
                             beta_schedule=c.beta_schedule, prediction_type=c.prediction_type)
         self.train_scheduler = DDPMScheduler(**self._common, clip_sample=False)
         self.alphas_cumprod = self.train_scheduler.alphas_cumprod.to(torch.float64)
+        self._boundary: LCMScheduler | None = None
 
     # -- coefficients at integer timesteps, broadcast to x
     def _coef(self, t: torch.Tensor, like: torch.Tensor):
@@ -87,6 +88,14 @@ class NoiseSchedule:
         if p == "v_prediction":
             return sa * eps - s1a * x0
         return eps if p == "epsilon" else x0
+
+    def boundary_scalings(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The consistency function's (c_skip, c_out) at timesteps t (B,), float64 on the CPU, from
+        diffusers' LCM scheduler; it depends on no sampling state, so one instance serves every call
+        (a fresh one cost about half a millisecond, at every step of a 4-step sampling)."""
+        if self._boundary is None:
+            self._boundary = self.sampler("consistency", 1)
+        return self._boundary.get_scalings_for_boundary_condition_discrete(t.double().cpu())
 
     def sampler(self, name: str = "ddim", steps: int = 50, timesteps: list[int] | None = None):
         """A fresh diffusers scheduler with its timesteps set: `steps` of them spaced as configured,
