@@ -414,7 +414,8 @@ def test_a_run_saved_before_a_config_field_existed_resumes_at_its_default(tiny_m
     resumed.fit()
     assert resumed.step_count == 3
     cfg.data.balance, cfg.optim.max_steps = 0.5, 4                  # a changed recipe is still refused
-    with pytest.raises(ValueError, match=r"different config \(differs in \['data'\]\)"):
+    with pytest.raises(ValueError, match=r"different config \(differs in \['data'\]: data.balance is 0.5 here, "
+                                         r"1.0 in the run\)"):
         Trainer(DenoiserTask(cfg, show_progress=False), cfg.optim, cfg.run).fit()
 
 

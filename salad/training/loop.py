@@ -100,6 +100,18 @@ def _with_defaults(saved: dict, defaults: dict) -> dict:
     return out
 
 
+def _differences(mine: dict, theirs: dict, prefix: str = "") -> list[tuple[str, Any, Any]]:
+    """(dotted key, value here, value there) for every leaf on which two nested configs differ."""
+    out = []
+    for key in sorted(set(mine) | set(theirs)):
+        a, b = mine.get(key), theirs.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append((f"{prefix}{key}", a, b))
+    return out
+
+
 class Trainer:
     def __init__(self, task: Task, optim: OptimConfig, run: RunConfig, ema_decay: float | None = None):
         self.task, self.optim_cfg, self.run_cfg = task, optim, run
@@ -196,7 +208,8 @@ class Trainer:
         theirs = comparable(theirs)
         if mine != theirs:
             changed = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
-            raise CheckpointError(f"{path}: was trained with a different config (differs in {changed}); "
+            details = "; ".join(f"{key} is {a!r} here, {b!r} in the run" for key, a, b in _differences(mine, theirs))
+            raise CheckpointError(f"{path}: was trained with a different config (differs in {changed}: {details}); "
                                   "use a new out_dir or the same config")
         load_state_strict(self.model, parts["model"], str(path))
         if self.ema is not None and "ema" in parts:
