@@ -4,7 +4,7 @@ glibc serves every block above its mmap threshold (128 KiB to start with) from a
 mapping and unmaps it on free, so each decode's activations (a 96-channel decoder on 22 joints
 x 120 frames is about 1 MB a tensor) come back as pages the kernel must fault in and zero
 again. On this project's 2-core machines that was about a tenth of a 4-step generation
-(median 66-69 ms against 59-61 ms with large blocks kept in the heap). Raising the threshold keeps
+(median 67-69 ms against 58-61 ms with large blocks kept in the heap, two processes each way). Raising the threshold keeps
 freed blocks for reuse; the memory stays the process's until it exits, bounded by the
 largest working set it had.
 """
