@@ -206,9 +206,10 @@ class Trainer:
         if dataclasses.is_dataclass(cfg):
             theirs = _with_defaults(theirs, json.loads(json.dumps(dataclasses.asdict(type(cfg)()))))
         theirs = comparable(theirs)
-        if mine != theirs:
-            changed = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
-            details = "; ".join(f"{key} is {a!r} here, {b!r} in the run" for key, a, b in _differences(mine, theirs))
+        differences = _differences(mine, theirs)
+        if differences:
+            changed = sorted({key.split(".")[0] for key, _, _ in differences})
+            details = "; ".join(f"{key} is {a!r} here, {b!r} in the run" for key, a, b in differences)
             raise CheckpointError(f"{path}: was trained with a different config (differs in {changed}: {details}); "
                                   "use a new out_dir or the same config")
         load_state_strict(self.model, parts["model"], str(path))
