@@ -656,3 +656,48 @@ def test_min_snr_weighting_rescales_each_timesteps_loss_and_caps_it(tiny_model, 
     cfg.min_snr_gamma = -1.0
     with pytest.raises(ConfigError, match="min_snr_gamma"):
         DenoiserTask(cfg, show_progress=False)
+
+
+def test_the_denoisers_validation_loss_is_logged_and_compares_across_recipes(tiny_model, tiny_dataset, tmp_path):
+    from salad.data.dataset import MotionDataset
+    from salad.training.denoiser_task import DenoiserTask
+
+    cfg = _bundle_config(tiny_dataset, tiny_model, tmp_path / "a")
+    cfg.run.validate_every, cfg.run.log_every, cfg.optim.max_steps = 2, 3, 4
+    cfg.min_snr_gamma = 5.0
+    task = DenoiserTask(cfg, show_progress=False)
+    trainer = Trainer(task, cfg.optim, cfg.run, ema_decay=cfg.ema_decay)
+    trainer.fit()
+    rows = [json.loads(l) for l in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    # one row per logged or validated step; the validated ones carry the loss
+    assert [r["step"] for r in rows] == [2, 3, 4]
+    assert [("val_loss" in r) for r in rows] == [True, False, True]
+    assert all(np.isfinite(r["val_loss"]) and r["val_loss"] > 0 for r in rows if "val_loss" in r)
+    # every validation motion once, at its own length, the same draws at every call
+    val = MotionDataset(tiny_dataset, "val", max_frames=80, normalizer=task.normalizer)
+    masks = torch.cat([b["frame_mask"].sum(1) for b in task._validation])
+    assert sorted((4 * masks).tolist()) == sorted(min(len(it.features), task.canvas) // 4 * 4 for it in val.items)
+    model = trainer.ema
+    assert trainer.validate() == trainer.validate() == pytest.approx(rows[-1]["val_loss"])
+    # unweighted by min-SNR, so runs with and without it read on one scale
+    model.min_snr_gamma = 0.0
+    assert trainer.validate() == pytest.approx(rows[-1]["val_loss"])
+    # the model in training mode (dropout) comes back in training mode
+    trainer.model.train()
+    trainer.validate()
+    assert trainer.model.training and not trainer.ema.training
+
+
+def test_the_cli_prints_a_snapshots_validation_loss_without_training(tiny_model, tiny_dataset, tmp_path, capsys):
+    from salad.cli import main
+
+    cfg = denoiser_toml(tmp_path / "d.toml", tiny_dataset, steps=2)
+    args = ["train", "denoiser", "--config", str(cfg), "--vae", str(tiny_model / "vae"),
+            "--out-dir", str(tmp_path / "run")]
+    assert main(args + ["--init-from", str(tiny_model / "denoiser"), "--validate-only"]) == 0
+    first = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert first["val_loss"] > 0 and not (tmp_path / "run").exists()
+    assert main(args + ["--init-from", str(tiny_model / "denoiser"), "--validate-only"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == first
+    assert main(args + ["--validate-only"]) == 2
+    assert "--validate-only applies to a denoiser given with --init-from" in capsys.readouterr().err

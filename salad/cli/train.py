@@ -12,6 +12,8 @@ def cmd_train(a) -> int:
         raise ValueError(f"--init-from applies to the vae, vae-san, the denoiser and consistency, not to {a.what}")
     if a.new_latents and (a.what != "denoiser" or not (a.init_from or a.continue_from)):
         raise ValueError("--new-latents applies to a denoiser started with --init-from or --continue-from")
+    if a.validate_only and (a.what != "denoiser" or not a.init_from):
+        raise ValueError("--validate-only applies to a denoiser given with --init-from")
     if a.teacher and a.what != "consistency":
         raise ValueError(f"--teacher applies to consistency distillation, not to {a.what}")
     if a.what == "vae":
@@ -25,7 +27,7 @@ def cmd_train(a) -> int:
         cfg = load_toml(DenoiserTrainConfig, a.config)
         apply_overrides(cfg, a)
         _limit_threads(cfg)
-        task, ema = DenoiserTask(cfg), cfg.ema_decay
+        task, ema = DenoiserTask(cfg, encode_text=not a.validate_only), cfg.ema_decay
         task.new_latents = a.new_latents
     elif a.what == "consistency":
         from ..training.consistency_task import ConsistencyTask
@@ -45,10 +47,23 @@ def cmd_train(a) -> int:
         from ..training.evaluator_task import train_evaluator
         return train_evaluator(a)
     trainer = Trainer(task, cfg.optim, cfg.run, ema_decay=ema)
+    if a.validate_only:
+        return _print_validation_loss(task, trainer, a.init_from)
     if a.init_from or a.continue_from:
         trainer.init_weights(a.init_from or a.continue_from, carry_step=bool(a.continue_from))
     out = trainer.fit()
     print(f"model written to {out}")
+    return 0
+
+
+def _print_validation_loss(task, trainer, model_dir: str) -> int:
+    import json
+    from pathlib import Path
+    task.load_weights(trainer.ema or trainer.model, Path(model_dir))
+    loss = trainer.validate()
+    if loss is None:
+        raise ValueError("a latent bundle holds no validation split: validate on the dataset (--data, no --bundle)")
+    print(json.dumps({"model": model_dir, "val_loss": round(loss, 6)}))
     return 0
 
 
@@ -85,6 +100,9 @@ def add_parser(sub) -> None:
                        help="train an exported model further: its weights and step count, so the LR schedule and "
                             "max_steps count on from its step; the fresh optimiser warms up again over warmup_steps. "
                             "consistency: an exported student of the same teacher")
+    t.add_argument("--validate-only", action="store_true",
+                   help="denoiser: print the --init-from model's loss on the validation split (what run.validate_every "
+                        "logs during training) and stop, so that snapshots of runs with other recipes compare")
     t.add_argument("--new-latents", action="store_true",
                    help="denoiser: let --init-from / --continue-from start from a denoiser trained on another VAE's "
                         "latents (e.g. before the VAE's encoder was retrained); it then re-learns this VAE's latents")

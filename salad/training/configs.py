@@ -47,6 +47,8 @@ class RunConfig:
     log_every: int = 50
     threads: int = 0              # 0 = torch's default
     device: str = "auto"          # auto (a CUDA GPU when present, else the CPU), cpu, cuda or cuda:N
+    # steps between losses on the validation split, logged as val_loss (tasks that have one; 0 = off)
+    validate_every: int = 0
 
 
 @dataclass

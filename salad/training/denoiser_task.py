@@ -58,8 +58,9 @@ class DenoiserTraining(nn.Module):
         kind = self.schedule.config.prediction_type
         return capped / (snr + 1.0) if kind == "v_prediction" else capped / snr if kind == "epsilon" else capped
 
-    def forward(self, batch: dict):
-        """(loss, logs, the clean-latent estimate)."""
+    def forward(self, batch: dict, weighted: bool = True):
+        """(loss, logs, the clean-latent estimate); weighted=False leaves out the min-SNR weights, so
+        losses of runs with and without them compare."""
         z0 = batch["latents"]
         t = batch["timesteps"]
         noise = batch["noise"]
@@ -68,7 +69,7 @@ class DenoiserTraining(nn.Module):
                              pooled_text=batch["pooled"], auto_length=batch["auto"])
         target = self.schedule.target(z0, noise, t)
         err = F.mse_loss(pred.float(), target.float(), reduction="none").mean(dim=(2, 3))  # (B, T)
-        if self.min_snr_gamma > 0:
+        if self.min_snr_gamma > 0 and weighted:
             err = err * self.snr_weights(t)[:, None]
         if batch["frame_mask"] is not None:
             w = batch["frame_mask"].float()
@@ -106,6 +107,7 @@ class DenoiserTask:
         if not 0.0 <= d.balance <= 1.0:
             raise ConfigError(f"data.balance must be in [0, 1], got {d.balance}")
         self.bundle = None
+        self._validation: list[dict] | None = None
         if d.bundle:
             self._from_bundle(cfg)
         else:
@@ -244,6 +246,50 @@ class DenoiserTask:
         logvar = torch.stack([posterior[b][1] for b in range(len(idx))])
         noise = self.cfg.posterior_noise * torch.randn_like(mu) * torch.exp(0.5 * logvar)
         return (mu + noise) * self.latent_scale, crops
+
+    # ------------------------------------------------------------ validation
+    def validation_loss(self, model: nn.Module) -> float | None:
+        """The unweighted diffusion loss over the validation split, each motion once (its start on
+        the canvas, its first caption, the posterior mean) at fixed timesteps and noise, so that the
+        numbers of runs with other recipes (data weighting, min-SNR, learning rate) compare. None
+        for a latent bundle, which holds the training split alone."""
+        if self.bundle is not None:
+            return None
+        if self._validation is None:
+            self._validation = self._validation_batches()
+        device = next(model.parameters()).device
+        total = rows = 0.0
+        for batch in self._validation:
+            loss, _, _ = model({k: v.to(device) if torch.is_tensor(v) else v for k, v in batch.items()},
+                               weighted=False)
+            n = float(batch["frame_mask"].sum())
+            total, rows = total + float(loss) * n, rows + n
+        return total / rows
+
+    def _validation_batches(self) -> list[dict]:
+        d = self.cfg.data
+        val = MotionDataset(d.root, "val", min_frames=d.min_frames, max_frames=d.max_frames,
+                            normalizer=self.normalizer)
+        # by length, so that each batch pads little
+        items = sorted(val.items, key=lambda it: min(len(it.features), self.canvas))
+        crops = [it.features[: min(len(it.features), self.canvas) // 4 * 4] for it in items]
+        captions = [it.captions[0] for it in items]
+        bank = TextBank(self.text_encoder, captions, progress=False, dtype=torch.bfloat16)
+        g = torch.Generator().manual_seed(12345)
+        B, batches = self.cfg.optim.batch_size, []
+        for s in range(0, len(crops), B):
+            part = crops[s:s + B]
+            mu, _ = self.encode(part)
+            frames = torch.tensor([len(c) for c in part])
+            T = min(self.canvas, -(-int(frames.max()) // FRAME_BUCKET) * FRAME_BUCKET)
+            frame_mask = torch.arange(T // 4)[None, :] < (frames // 4)[:, None]
+            latents = mu[:, : T // 4] * self.latent_scale * frame_mask[:, :, None, None]
+            text, text_mask, pooled = bank.batch(captions[s:s + B], TOKEN_BUCKET)
+            batches.append({"latents": latents, "frame_mask": frame_mask, "text": text, "text_mask": text_mask,
+                            "pooled": pooled, "auto": torch.zeros(len(part), dtype=torch.bool),
+                            "timesteps": torch.randint(0, self.schedule.config.train_steps, (len(part),), generator=g),
+                            "noise": torch.randn(latents.shape, generator=g)})
+        return batches
 
     def loss(self, model: nn.Module, batch: dict):
         loss, logs, x0 = model(batch)

@@ -41,6 +41,8 @@ class Task(Protocol):
     # optional, for --init-from / --continue-from (continuing=True); returns the exported model's meta
     # (step, samples_seen):
     # def load_weights(self, model: torch.nn.Module, path: Path, continuing: bool) -> dict
+    # optional, for run.validate_every: the model's loss on fixed held-out batches (None: none to give)
+    # def validation_loss(self, model: torch.nn.Module) -> float | None
 
 
 def lr_factor(step: int, cfg: OptimConfig, warm_from: int = 0) -> float:
@@ -266,6 +268,24 @@ class Trainer:
         if len(keep) != len(lines):
             atomic_write_text(log_file, "".join(l + "\n" for l in keep))
 
+    # ------------------------------------------------------------ validation
+    def _validation_due(self, total: int) -> bool:
+        every = self.run_cfg.validate_every
+        return (every > 0 and self.rank == 0 and hasattr(self.task, "validation_loss")
+                and (self.step_count % every == 0 or self.step_count == total))
+
+    def validate(self) -> float | None:
+        """The loss of the model that gets exported (the EMA where there is one) on the task's
+        held-out batches, without dropout."""
+        model = self.ema or self.model
+        was_training = model.training
+        model.eval()
+        try:
+            with torch.no_grad(), self.autocast():
+                return self.task.validation_loss(model)
+        finally:
+            model.train(was_training)
+
     # ------------------------------------------------------------ the loop
     def fit(self) -> Path:
         resumed = self.try_resume()
@@ -286,8 +306,13 @@ class Trainer:
             self.samples_seen += n
             n0 += n
             bar.update(1)
-            if self.step_count % self.run_cfg.log_every == 0 or self.step_count == total:
+            validate = self._validation_due(total)
+            if self.step_count % self.run_cfg.log_every == 0 or self.step_count == total or validate:
                 rate = n0 / max(time.time() - t0, 1e-9)
+                val = self.validate() if validate else None
+                if val is not None:
+                    logs["val_loss"] = val
+                    tqdm.write(f"step {self.step_count}: validation loss {val:.5f}", file=sys.stderr)
                 t0, n0 = time.time(), 0
                 bar.set_postfix(loss=f"{logs['loss']:.4f}", samples_s=f"{rate:.1f}")
                 if self.rank == 0:
