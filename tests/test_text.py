@@ -340,3 +340,49 @@ def test_torchvision_workaround_is_noop_when_import_works():
 
 def test_torchvision_guard_idempotent_in_process(tiny_clip):
     assert ensure_torchvision_importable() == []
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the training captions' features, kept on disk
+# ---------------------------------------------------------------------------------------------------------
+def test_cached_text_bank_encodes_once_and_survives_a_bad_or_unwritable_cache(minilm, tmp_path, monkeypatch):
+    from salad.models.text_bank import TextBank, cached_text_bank
+
+    calls = []
+
+    class Counting:
+        """the real encoder, counting the captions it is asked to encode"""
+        dim = minilm.dim
+
+        def spec(self):
+            return minilm.spec()
+
+        def encode(self, prompts):
+            calls.append(len(prompts))
+            return minilm.encode(prompts)
+
+    captions = ["a person walks forward", "someone waves the right hand", "a person walks forward", "a man bows"]
+    fresh = cached_text_bank(Counting(), captions, tmp_path / "cache", progress=False, dtype=torch.bfloat16)
+    assert sum(calls) == 4 and len(list((tmp_path / "cache").glob("*.safetensors"))) == 1     # "" + 3 distinct
+    again = cached_text_bank(Counting(), captions, tmp_path / "cache", progress=False, dtype=torch.bfloat16)
+    assert sum(calls) == 4                                                                    # read, not encoded
+    for a, b in zip(fresh.tensors(), again.tensors()):
+        assert torch.equal(a, b)
+    for x, y in zip(fresh.batch(captions[:2], 8), again.batch(captions[:2], 8)):
+        assert torch.equal(x, y)
+    # other captions or another dtype are another entry, never a wrong one
+    other = cached_text_bank(Counting(), captions[:2], tmp_path / "cache", progress=False, dtype=torch.bfloat16)
+    assert sum(calls) == 7 and other.captions == TextBank.distinct(captions[:2])
+    # a torn file is encoded again and replaced
+    for p in (tmp_path / "cache").glob("*.safetensors"):
+        p.write_bytes(p.read_bytes()[:100])
+    before = sum(calls)
+    rebuilt = cached_text_bank(Counting(), captions, tmp_path / "cache", progress=False, dtype=torch.bfloat16)
+    assert sum(calls) == before + 4 and torch.equal(rebuilt.flat, fresh.flat)
+    cached_text_bank(Counting(), captions, tmp_path / "cache", progress=False, dtype=torch.bfloat16)
+    assert sum(calls) == before + 4
+    # a cache that cannot be written: encoded as without one
+    blocked = tmp_path / "file"
+    blocked.write_text("not a directory")
+    plain = cached_text_bank(Counting(), captions, blocked / "cache", progress=False, dtype=torch.bfloat16)
+    assert torch.equal(plain.flat, fresh.flat)

@@ -1,10 +1,18 @@
 """Token features of a fixed caption set, encoded once (the text encoder is frozen during training)."""
 from __future__ import annotations
 
+import hashlib
+import json
+import os
+from pathlib import Path
 from typing import Sequence
 
 import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
 from tqdm import tqdm
+
+from ..files import atomic_path
 
 
 class TextBank:
@@ -65,3 +73,33 @@ class TextBank:
         ids = [self.index[c] for c in captions]
         tokens, mask = self.gather(ids, multiple)
         return tokens, mask, self.pooled[ids]
+
+
+def cached_text_bank(encoder, captions: Sequence[str], cache_dir: str | Path, progress: bool = True,
+                     dtype: torch.dtype = torch.float32) -> TextBank:
+    """TextBank(encoder, captions) kept in cache_dir, keyed by the encoder (and its weights file) and
+    the captions, so a run's restarts and later runs on the same data skip the encoding (about a
+    minute for the Bandai captions on two threads). A cache that cannot be read is rebuilt, one that
+    cannot be written is skipped."""
+    distinct = TextBank.distinct(captions)
+    spec = encoder.spec()
+    weights = spec.get("weights")
+    stat = os.stat(weights) if weights and os.path.isfile(weights) else None
+    key = hashlib.sha256(json.dumps({"spec": spec, "dtype": str(dtype), "captions": distinct,
+                                     "weights": stat and [stat.st_size, stat.st_mtime_ns]},
+                                    sort_keys=True).encode()).hexdigest()[:32]
+    path = Path(cache_dir) / f"text-features-{key}.safetensors"
+    if path.is_file():
+        try:
+            t = load_file(str(path))
+            return TextBank.from_tensors(distinct, t["flat"], t["lengths"], t["pooled"])
+        except (OSError, SafetensorError, KeyError, ValueError):
+            pass
+    bank = TextBank(encoder, distinct, progress=progress, dtype=dtype)
+    flat, lengths, pooled = bank.tensors()
+    try:
+        with atomic_path(path) as tmp:
+            save_file({"flat": flat.contiguous(), "lengths": lengths, "pooled": pooled.contiguous()}, str(tmp))
+    except OSError:
+        pass
+    return bank

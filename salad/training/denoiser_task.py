@@ -30,7 +30,7 @@ from ..checkpoint import CheckpointError, load_state_strict
 from .balance import class_weights, dataset_content
 from ..models.io import load_denoiser, load_vae, save_denoiser, vae_latent_checksums, vae_latent_origin
 from ..models.text import load_text_encoder, parse_text_encoder_spec
-from ..models.text_bank import TextBank
+from ..models.text_bank import TextBank, cached_text_bank
 from ..precision import resolve_device
 from .configs import DenoiserTrainConfig
 from .foot_loss import planted_foot_error
@@ -39,6 +39,7 @@ from .latent_bundle import LatentBundle
 
 FRAME_BUCKET = 16     # fixed-length batches span a multiple of 16 frames (4 latent frames), masked past the longest
 TOKEN_BUCKET = 8      # and a multiple of 8 caption tokens
+TEXT_CACHE = ".salad-cache"   # under data.root: the captions' text features, encoded once per encoder
 
 
 class DenoiserTraining(nn.Module):
@@ -121,8 +122,9 @@ class DenoiserTask:
             if cfg.model.text_dim != self.text_encoder.dim:
                 raise ValueError(f"model.text_dim is {cfg.model.text_dim} but the {self.text_encoder.name} "
                                  f"text encoder gives {self.text_encoder.dim}-d features")
-            self.text = (TextBank(self.text_encoder, [c for cs in self.captions for c in cs], progress=show_progress,
-                                  dtype=torch.bfloat16) if encode_text else None)
+            self.text = (cached_text_bank(self.text_encoder, [c for cs in self.captions for c in cs],
+                                          Path(d.root) / TEXT_CACHE, progress=show_progress, dtype=torch.bfloat16)
+                         if encode_text else None)
         self._by_length = np.argsort(np.minimum(self.lengths, self.canvas), kind="stable")
         self._weights = class_weights(self.content, d.balance)
         self.schedule = NoiseSchedule(cfg.diffusion)
