@@ -699,5 +699,9 @@ def test_the_cli_prints_a_snapshots_validation_loss_without_training(tiny_model,
     assert first["val_loss"] > 0 and not (tmp_path / "run").exists()
     assert main(args + ["--init-from", str(tiny_model / "denoiser"), "--validate-only"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == first
+    # a bundle holds no validation split: the loss is read from data.root all the same
+    assert main(args + ["--init-from", str(tiny_model / "denoiser"), "--validate-only",
+                        "--bundle", str(tmp_path / "no-bundle")]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == first
     assert main(args + ["--validate-only"]) == 2
     assert "--validate-only applies to a denoiser given with --init-from" in capsys.readouterr().err

@@ -26,6 +26,8 @@ def cmd_train(a) -> int:
         from ..training.denoiser_task import DenoiserTask
         cfg = load_toml(DenoiserTrainConfig, a.config)
         apply_overrides(cfg, a)
+        if a.validate_only:
+            cfg.data.bundle = ""      # a latent bundle holds the training split alone; validation reads data.root
         _limit_threads(cfg)
         task, ema = DenoiserTask(cfg, encode_text=not a.validate_only), cfg.ema_decay
         task.new_latents = a.new_latents
@@ -61,8 +63,6 @@ def _print_validation_loss(task, trainer, model_dir: str) -> int:
     from pathlib import Path
     task.load_weights(trainer.ema or trainer.model, Path(model_dir))
     loss = trainer.validate()
-    if loss is None:
-        raise ValueError("a latent bundle holds no validation split: validate on the dataset (--data, no --bundle)")
     print(json.dumps({"model": model_dir, "val_loss": round(loss, 6)}))
     return 0
 
