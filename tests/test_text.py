@@ -386,3 +386,27 @@ def test_cached_text_bank_encodes_once_and_survives_a_bad_or_unwritable_cache(mi
     blocked.write_text("not a directory")
     plain = cached_text_bank(Counting(), captions, blocked / "cache", progress=False, dtype=torch.bfloat16)
     assert torch.equal(plain.flat, fresh.flat)
+
+
+def test_cached_text_bank_keeps_the_most_recently_used_entries(minilm, tmp_path, monkeypatch):
+    import os
+
+    from salad.models import text_bank
+
+    monkeypatch.setattr(text_bank, "TEXT_CACHE_ENTRIES", 2)
+    cache = tmp_path / "cache"
+    sets = [["a person walks forward"], ["a man bows"], ["someone waves the right hand"]]
+
+    def entries():
+        return set(cache.glob("text-features-*.safetensors"))
+
+    text_bank.cached_text_bank(minilm, sets[0], cache, progress=False)
+    first = entries()
+    text_bank.cached_text_bank(minilm, sets[1], cache, progress=False)
+    second = entries() - first
+    for age, p in ((300, next(iter(first))), (200, next(iter(second)))):      # timestamps apart, whatever the fs
+        os.utime(p, ns=(0, p.stat().st_mtime_ns - age * 10**9))
+    text_bank.cached_text_bank(minilm, sets[0], cache, progress=False)       # read: the first is used again
+    text_bank.cached_text_bank(minilm, sets[2], cache, progress=False)
+    left = entries()
+    assert len(left) == 2 and first <= left and not (second & left)          # the least recently used went

@@ -14,6 +14,10 @@ from tqdm import tqdm
 
 from ..files import atomic_path
 
+# Entries kept per cache directory: each is ~0.4 GB for the Bandai captions, and a changed caption set or
+# encoder leaves its old entry behind. The least recently used go first.
+TEXT_CACHE_ENTRIES = 3
+
 
 class TextBank:
     """Every caption's token features stored flat, gathered into padded batches by index or by caption."""
@@ -80,7 +84,7 @@ def cached_text_bank(encoder, captions: Sequence[str], cache_dir: str | Path, pr
     """TextBank(encoder, captions) kept in cache_dir, keyed by the encoder (and its weights file) and
     the captions, so a run's restarts and later runs on the same data skip the encoding (about a
     minute for the Bandai captions on two threads). A cache that cannot be read is rebuilt, one that
-    cannot be written is skipped."""
+    cannot be written is skipped; past TEXT_CACHE_ENTRIES entries the least recently used are deleted."""
     distinct = TextBank.distinct(captions)
     spec = encoder.spec()
     weights = spec.get("weights")
@@ -92,7 +96,9 @@ def cached_text_bank(encoder, captions: Sequence[str], cache_dir: str | Path, pr
     if path.is_file():
         try:
             t = load_file(str(path))
-            return TextBank.from_tensors(distinct, t["flat"], t["lengths"], t["pooled"])
+            bank = TextBank.from_tensors(distinct, t["flat"], t["lengths"], t["pooled"])
+            os.utime(path)
+            return bank
         except (OSError, SafetensorError, KeyError, ValueError):
             pass
     bank = TextBank(encoder, distinct, progress=progress, dtype=dtype)
@@ -100,6 +106,13 @@ def cached_text_bank(encoder, captions: Sequence[str], cache_dir: str | Path, pr
     try:
         with atomic_path(path) as tmp:
             save_file({"flat": flat.contiguous(), "lengths": lengths, "pooled": pooled.contiguous()}, str(tmp))
+        _prune(path.parent)
     except OSError:
         pass
     return bank
+
+
+def _prune(cache_dir: Path) -> None:
+    entries = sorted(cache_dir.glob("text-features-*.safetensors"), key=lambda p: p.stat().st_mtime_ns, reverse=True)
+    for old in entries[TEXT_CACHE_ENTRIES:]:
+        old.unlink(missing_ok=True)
