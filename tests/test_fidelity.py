@@ -143,6 +143,13 @@ def test_reference_clips_follow_the_prompts_style_and_widen_only_when_too_few(tm
         {n: {"content": "walk", "style": styles[n], "split": split[n]} for n in names}))
     clips, used = reference_clips(root, walk, read_labels(root))
     assert used == "test" and len(clips) == sum(1 for n in names if split[n] == "test" and styles[n] == "normal")
+    # one unstyled take (and its mirror) in all: the class as captured, every style of every split, even
+    # where the test split alone holds enough clips of a few other styles
+    few = {n: ("normal" if n in names[:2] else styles[n] if styles[n] != "normal" else "proud") for n in names}
+    (root / "labels.json").write_text(json.dumps(
+        {n: {"content": "walk", "style": few[n], "split": split[n]} for n in names}))
+    clips, used = reference_clips(root, walk, read_labels(root))
+    assert used == "all, all styles" and len(clips) == len(names)
 
 
 def test_a_fidelity_run_with_the_length_prior_generates_at_the_priors_length(tmp_path):
@@ -187,6 +194,22 @@ def test_a_stored_run_is_judged_again_from_its_measures(tmp_path, capsys):
         assert res["rules"] == RULES and res["summary"]["raw"]["passed"] == int(passes)
         assert res["rows"][0]["raw"]["checks"]["side"]["real"] == "right"
         assert "## raw decoder output" in (tmp_path / f"{side}-out" / "report.md").read_text()
+    # with --data the real clips are chosen and measured again: a run stored under the old rule, whose
+    # reference was a few test clips of other styles, gets the class's every clip
+    root = write_tiny_dataset(tmp_path / "data", n=8)
+    names = [n for f in ("train", "val", "test") for n in (root / f"{f}.txt").read_text().split()]
+    (root / "labels.json").write_text(json.dumps(
+        {n: {"content": "bye", "style": "normal" if i < 2 else "happy", "split": "test" if i >= 4 else "train"}
+         for i, n in enumerate(names)}))
+    stored = _stored_bye_run("right")
+    stored["rows"][0]["reference"]["splits"] = "test, all styles"
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "results.json").write_text(json.dumps(stored))
+    assert main(["eval-fidelity", "--rejudge", str(tmp_path / "old"), "--data", str(root)]) == 0
+    ref = json.loads((tmp_path / "old" / "results.json").read_text())["rows"][0]["reference"]
+    assert ref["splits"] == "all, all styles" and ref["clips"] == len(ref["measures"]) == len(names)
+    assert max(m["duration_s"] for m in ref["measures"]) <= 196 / 20          # capped at the canvas
+    assert main(["eval-fidelity", "--rejudge", str(tmp_path / "old"), "--data", str(tmp_path / "nothing")]) == 2
     (tmp_path / "broken").mkdir()
     (tmp_path / "broken" / "results.json").write_text("{}")
     assert main(["eval-fidelity", "--rejudge", str(tmp_path / "broken")]) == 2

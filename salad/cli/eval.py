@@ -212,7 +212,8 @@ def add_eval_fidelity(sub) -> None:
     p.add_argument("--out", help="directory for results.json and report.md; required unless --rejudge")
     p.add_argument("--rejudge", metavar="DIR", default=None,
                    help="judge a stored run (DIR/results.json) again under the current rules from the measures it "
-                        "keeps, generating nothing; writes to --out, or back into DIR")
+                        "keeps, generating nothing; writes to --out, or back into DIR. With --data, its real "
+                        "reference clips are also chosen and measured again (the current reference rule)")
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--classes", default=None, help="comma list of classes (default: all), e.g. walk,kick")
     p.add_argument("--seeds", type=int, default=3)
@@ -238,7 +239,7 @@ def cmd_eval_fidelity(a) -> int:
     from ..pipeline import load_pipeline
 
     if a.rejudge:
-        return _rejudge_fidelity(Path(a.rejudge), Path(a.out or a.rejudge))
+        return _rejudge_fidelity(Path(a.rejudge), Path(a.out or a.rejudge), a.data)
     if not a.data or not a.out:
         raise ValueError("eval-fidelity needs --data and --out (or --rejudge DIR)")
     device = device_of(a)
@@ -260,10 +261,12 @@ def cmd_eval_fidelity(a) -> int:
     return 0
 
 
-def _rejudge_fidelity(src: Path, out: Path) -> int:
+def _rejudge_fidelity(src: Path, out: Path, data: str | None) -> int:
+    if data is not None:
+        read_labels(data)                         # a dataset that cannot be read says so before anything else
     try:
         stored = json.loads((src / "results.json").read_text())
-        results = rejudge(stored)
+        results = rejudge(stored, data)
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ValueError(f"{src / 'results.json'} is not a readable eval-fidelity result: {e}") from None
     _write_fidelity(results, out)
