@@ -283,11 +283,12 @@ def test_a_teacher_checkpoint_is_not_taken_for_a_student(tiny_student, tmp_path)
 def test_consistency_control_follows_targets_and_composes_with_an_edit(student_pipe):
     from salad.motion.control import control_errors, make_signal
 
+    kept = student_pipe.projections
     student_pipe.set_projections(0)      # control decodes without projection: the same motion unguided
     try:
         free = student_pipe.generate("a person walks forward", seconds=1.6, seed=5, sampler="consistency")
     finally:
-        student_pipe.set_projections(1)
+        student_pipe.set_projections(kept)
     targets = free.joints.copy()
     targets[:, 0, 0] += 0.5                       # the pelvis half a metre to the left
     mask = np.zeros((32, 22), dtype=bool)
