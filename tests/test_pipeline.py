@@ -88,37 +88,28 @@ def test_cli_generate_writes_files(tiny_model, tmp_path, cli):
     assert code == 2 and err.startswith("salad: error: seconds must be between")  # no bar before it
 
 
-def test_generated_motions_go_through_the_vae_once_more_before_the_last_decode(tiny_model):
+def test_generated_motions_can_go_through_the_vae_once_more_before_the_last_decode(tiny_model):
     import torch
 
     from salad.pipeline import LATENT_PROJECTIONS
     pipe = load_pipeline(tiny_model)
     pipe.set_foot_refine(0)                 # the projection alone (the refinement after it has its own test)
     plain = pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3)
-    assert plain.info["projections"] == pipe.projections["ddim"] == LATENT_PROJECTIONS["ddim"] == 0
-    assert pipe.projections == LATENT_PROJECTIONS == {"ddim": 0, "dpm": 0, "consistency": 1}
-    assert pipe.sampler_settings("consistency") == {"projections": 1, "foot_refine": 0}
-    defaults = pipe.projections
-    pipe.set_projections(1, sampler="ddim")
-    assert pipe.projections == {"ddim": 1, "dpm": 0, "consistency": 1} and defaults == LATENT_PROJECTIONS
+    assert plain.info["projections"] == pipe.projections == LATENT_PROJECTIONS == 0
+    assert pipe.sampler_settings("consistency") == {"projections": 0, "foot_refine": 0}
+    pipe.set_projections(1)
     projected = pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3)
     assert projected.info["projections"] == 1 and not np.allclose(plain.features, projected.features, atol=1e-3)
-    assert pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3,
-                         sampler="dpm").info["projections"] == 0
+    assert pipe.sampler_settings("consistency") == {"projections": 1, "foot_refine": 0}
     # one projection: the decoded motion encoded to its posterior mean and decoded again
     with torch.no_grad():
         mu, _ = pipe.vae.encode(torch.from_numpy(pipe.normalizer.normalize(plain.features)).float()[None])
         again = pipe.normalizer.denormalize(pipe.vae.decode(mu)[0][0].numpy())
     assert np.allclose(projected.features, again, atol=1e-3)
-    for bad in (-1, 9, 1.5, True, "1", {"ddim": -1}):
+    for bad in (-1, 9, 1.5, True, "1"):
         with pytest.raises(ValueError, match="projections must be an integer in 0..8"):
             pipe.set_projections(bad)
-    with pytest.raises(ValueError, match="unknown sampler 'euler'"):
-        pipe.set_projections(1, sampler="euler")
-    assert pipe.projections == {"ddim": 1, "dpm": 0, "consistency": 1}
-    pipe.set_projections(defaults)
-    pipe.set_projections(2)
-    assert pipe.projections == {"ddim": 2, "dpm": 2, "consistency": 2}
+    assert pipe.projections == 1
 
 
 def test_planted_feet_refinement_setting_and_report(tiny_model):

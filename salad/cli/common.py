@@ -85,9 +85,8 @@ def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SA
                                  "(default 0.3: the last 15 of 50 DDIM steps; 0: guidance at every step)")
         parser.add_argument("--projections", type=int, default=None,
                             help="times a generated motion goes through the VAE (decoded, encoded to its mean) "
-                                 "before the last decode (default: 0 for ddim and dpm, 1 for the consistency student; "
-                                 "0: the sampler's latents as they are; guided control and real-motion edits decode "
-                                 "without it)")
+                                 "before the last decode, with every sampler (default 0: the sampler's latents as "
+                                 "they are; guided control and real-motion edits decode without it)")
         parser.add_argument("--foot-refine", type=int, default=None,
                             help="loss evaluations with which a generated motion's latent is refined so that the "
                                  "feet its decoder marks as planted stand still (default 20; 0: none; guided "

@@ -45,7 +45,7 @@ def encode(pipe, real: RealMotion) -> torch.Tensor:
 
 def decode(pipe, z: torch.Tensor, prompts: list[str], foot_lock: bool = True) -> list[Motion]:
     """Latents (B, T/4, 7, D) -> motions of exactly T frames (no activation cut-off)."""
-    return pipe.decode(z, 4 * z.shape[1], prompts, None, foot_lock, feet="keep")
+    return pipe.decode(z, 4 * z.shape[1], prompts, None, foot_lock, project=False, feet="keep")
 
 
 # ---------------------------------------------------------------- inversion

@@ -43,7 +43,7 @@ def regenerate(pipe, prompts: Sequence[str], seeds: Sequence[int], frames: int, 
     noise = torch.cat([pipe.noise(1, frames, int(s)) for s in seeds])
     text = pipe.sampler_text(list(prompts), sampler)
     z = pipe.denoise(text, noise, sampler, steps, cfg, auto=False, seed=[int(s) for s in seeds])
-    motions = pipe.decode(z, frames, list(prompts), int(seeds[0]), sampler=sampler)
+    motions = pipe.decode(z, frames, list(prompts), int(seeds[0]))
     for m, s in zip(motions, seeds):
         m.seed = int(s)
     return motions

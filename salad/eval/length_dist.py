@@ -104,7 +104,7 @@ def generate_auto_length(pipe, prompts: list[str], seed: int = 0, steps: int = 5
     text = pipe.sampler_text(prompts, sampler)
     z = pipe.denoise(text, pipe.noise(len(prompts), pipe.canvas_frames, seed), sampler, steps, cfg, auto=True,
                      seed=seed)
-    return pipe.decode(z, None, prompts, seed, sampler=sampler)
+    return pipe.decode(z, None, prompts, seed)
 
 
 def evaluate_lengths(pipe, dataset, samples: int = 256, seed: int = 0, steps: int | None = None, cfg: float = 7.5,
