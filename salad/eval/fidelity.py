@@ -6,9 +6,9 @@ from each held-out paraphrase (salad.eval.paraphrases) with several seeds at aut
 the generated motions are measured the same way as the real clips of that class in the style the
 prompt asks for ("normal" for a prompt that names none: an unstyled wave is an ordinary wave, not the
 mix of elderly and energetic ones the class holds), from the test split, widened to all splits and
-then (unstyled prompts) to every clip of the class where fewer than MIN_REFERENCE clips are found; durations are capped at the
-model's longest motion. Each class passes or fails on the
-checks that matter for it, with the tolerances in RULES, stated before anything is measured.
+then (unstyled prompts) to every clip of the class where fewer than MIN_REFERENCE clips are found;
+durations are capped at the model's longest motion. Each class passes or fails on the checks that
+matter for it, with the tolerances in RULES, stated before anything is measured.
 The table is made twice from the same samples: the raw decoder output, and the output after the
 clean-up (salad.motion.cleanup: rigid bones, then the foot lock) that generate() applies by default.
 

@@ -97,10 +97,14 @@ def cached_text_bank(encoder, captions: Sequence[str], cache_dir: str | Path, pr
         try:
             t = load_file(str(path))
             bank = TextBank.from_tensors(distinct, t["flat"], t["lengths"], t["pooled"])
-            os.utime(path)
-            return bank
         except (OSError, SafetensorError, KeyError, ValueError):
             pass
+        else:
+            try:
+                os.utime(path)            # used now: the last to be pruned
+            except OSError:
+                pass
+            return bank
     bank = TextBank(encoder, distinct, progress=progress, dtype=dtype)
     flat, lengths, pooled = bank.tensors()
     try:
