@@ -103,7 +103,10 @@ def test_planted_feet_refinement_stills_a_sliding_walk_at_its_speed(pipe):
     assert deferred.pending_refinement is not None and "foot_refine" not in deferred.info
     np.testing.assert_allclose(deferred.joints, raw.joints, atol=1e-5)
     later = pipe.refine_feet(deferred)
-    assert later.pending_refinement is None and later.info["foot_refine"] == refined.info["foot_refine"]
+    assert later.pending_refinement is None
+    got, want = later.info["foot_refine"], refined.info["foot_refine"]
+    assert got["evaluations"] == want["evaluations"]      # speeds to rounding: L-BFGS sums in another order
+    np.testing.assert_allclose(got["planted_speed_mps"], want["planted_speed_mps"], atol=2e-3)
     np.testing.assert_allclose(later.joints, refined.joints, atol=2e-3)
     assert pipe.refine_feet(later) is later, "refined once"
     before, after = refined.info["foot_refine"]["planted_speed_mps"]
