@@ -203,6 +203,9 @@ def test_a_stored_run_is_judged_again_from_its_measures(tmp_path, capsys):
          for i, n in enumerate(names)}))
     stored = _stored_bye_run("right")
     stored["rows"][0]["reference"]["splits"] = "test, all styles"
+    before = json.dumps(stored, sort_keys=True)
+    assert rejudge(stored, root)["rows"][0]["reference"]["splits"] == "all, all styles"
+    assert json.dumps(stored, sort_keys=True) == before, "rejudging leaves the results it is given as they were"
     (tmp_path / "old").mkdir()
     (tmp_path / "old" / "results.json").write_text(json.dumps(stored))
     assert main(["eval-fidelity", "--rejudge", str(tmp_path / "old"), "--data", str(root)]) == 0

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from salad.eval.paraphrases import PROMPT_SETS
-from salad.models.vocabulary import (ACTION_SIMILARITY, FEATURES_FILE, VOCABULARY_FILE, PromptCheck,
+from salad.models.vocabulary import (ACTION_SIMILARITY, FEATURES_FILE, INDEX_DIMS, VOCABULARY_FILE, PromptCheck,
                                      build_vocabulary, save_vocabulary)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,6 +40,8 @@ def test_the_embedded_vocabulary_names_what_the_model_was_trained_on(embedded_ch
     assert {"happily", "proudly", "wearily", "slowly", "briskly"} <= set(v.styles)
     assert embedded_check._features is not None, "the shipped features load without encoding anything"
     assert embedded_check.features.shape == (len(v.examples), 384)
+    index = embedded_check.index
+    assert index is not None and index.points.shape[1] == INDEX_DIMS and len(index.points) > 10 * len(v.examples)
 
 
 def test_plain_trained_prompts_carry_no_warning(embedded_check):
@@ -123,6 +125,22 @@ def test_cli_writes_the_vocabulary_and_generate_prints_warnings(tiny_model, tiny
     assert code == 0 and "warning:" not in err
     code, err = cli("data", "vocabulary", str(tmp_path / "missing"), "--model", str(model))
     assert code == 2 and "salad: error:" in err
+    # --index-only keeps the vocabulary (its sample, on which the warnings were set) and renews the index
+    doc = json.loads((model / VOCABULARY_FILE).read_text())
+    doc["examples"], doc["durations"], doc["speeds"] = doc["examples"][:1], doc["durations"][:1], doc["speeds"][:1]
+    (model / VOCABULARY_FILE).write_text(json.dumps(doc))
+    (model / FEATURES_FILE).unlink()
+    code, err = cli("data", "vocabulary", str(tiny_dataset), "--model", str(model), "--index-only")
+    assert code == 0, err
+    assert json.loads((model / VOCABULARY_FILE).read_text())["examples"] == doc["examples"]
+    from salad.models.text import load_text_encoder
+    check = PromptCheck.load(model, load_text_encoder("minilm"))
+    assert check._features.shape[0] == 1 and len(check.index.points) == len(build_vocabulary(tiny_dataset).captions)
+    bare = tmp_path / "bare"
+    shutil.copytree(tiny_model, bare)
+    (bare / VOCABULARY_FILE).unlink(missing_ok=True)
+    code, err = cli("data", "vocabulary", str(tiny_dataset), "--model", str(bare), "--index-only")
+    assert code == 2 and "--index-only needs the model's vocabulary" in err
 
 
 def test_the_vocabulary_keeps_each_examples_motion_length_for_a_length_prior(tiny_model, tiny_dataset, tmp_path):
@@ -157,10 +175,12 @@ def test_the_vocabulary_keeps_each_examples_motion_length_for_a_length_prior(tin
     assert pipe.generate("a person walks forward", seconds=1.0, seed=0, steps=2).info["length"] == "requested"
     with pytest.raises(ValueError, match="'auto', 'model' or 'prior'"):
         pipe.frames_for("forever")
-    # a vocabulary written before lengths were kept still loads; it has no prior to give
+    # a vocabulary written before lengths were kept (and so before the caption index) still loads; it has no
+    # prior to give
     doc = json.loads((model / VOCABULARY_FILE).read_text())
     del doc["durations"]
     (model / VOCABULARY_FILE).write_text(json.dumps(doc))
+    (model / FEATURES_FILE).unlink()
     with pytest.raises(ValueError, match="keeps motion lengths"):
         load_pipeline(model).frames_for("prior", "a person walks forward")
     doc["durations"] = [1.0]
@@ -207,6 +227,54 @@ def test_auto_length_is_the_models_own_held_within_the_priors_band(tiny_model, t
     assert pipe.generate(prompt, seconds=1.0, seed=0, steps=2).frames == 20      # requested lengths stay
 
 
+def test_the_length_prior_looks_among_every_training_caption_not_only_the_sample(tiny_dataset, tmp_path):
+    import numpy as np
+    from safetensors.torch import load_file, save_file
+
+    from salad.models.text import load_text_encoder
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    names = (data / "train.txt").read_text().split()
+    (data / "labels.json").write_text(json.dumps({n: {"content": "walk", "style": "normal", "dataset": 1,
+                                                      "mirrored": False, "source": "synthetic", "split": "train"}
+                                                  for n in names}))
+    lengths, speeds = {}, {}
+    for name in names:
+        f = np.load(data / "new_joint_vecs" / f"{name}.npy")
+        for line in (data / "texts" / f"{name}.txt").read_text().splitlines():
+            lengths.setdefault(line.split("#")[0], []).append(len(f) / 20)
+            speeds.setdefault(line.split("#")[0], []).append(np.linalg.norm(f[:, 1:3], axis=-1).mean() * 20)
+    vocab = build_vocabulary(data, per_action=2)
+    assert len(vocab.examples) == 2 < len(lengths)
+    assert [c for c, _, _ in vocab.captions] == sorted(lengths)
+    assert all(d == pytest.approx(np.median(lengths[c]), abs=0.01) and v == pytest.approx(np.median(speeds[c]), abs=1e-3)
+               for c, d, v in vocab.captions)
+    model = tmp_path / "model"
+    encoder = load_text_encoder("minilm")
+    save_vocabulary(vocab, encoder, model)
+    assert "captions" not in json.loads((model / VOCABULARY_FILE).read_text()), "the index lives in the tensors"
+    check = PromptCheck.load(model, encoder)
+    assert check.index is not None and len(check.index.points) == len(vocab.captions)
+    for caption, seconds, _ in vocab.captions:      # every caption, in the sample or not, is its own nearest
+        assert check.length_prior(caption, k=1) == pytest.approx(seconds, abs=0.01), caption
+    sample = dict((c, d) for (_, c), d in zip(vocab.examples, vocab.durations))
+    # an index made by another text encoder is left out, and so is a file without one: the examples answer
+    tensors = load_file(str(model / FEATURES_FILE))
+    save_file(tensors, str(model / FEATURES_FILE), metadata={"encoder": json.dumps({"name": "another"})})
+    other = PromptCheck.load(model, encoder)
+    assert other.index is None and other._features is None
+    save_file({"pooled": tensors["pooled"]}, str(model / FEATURES_FILE),
+              metadata={"encoder": json.dumps(encoder.spec(), sort_keys=True)})
+    old = PromptCheck.load(model, encoder)
+    assert old.index is None and old._features is not None
+    for caption, d in sample.items():
+        assert other.length_prior(caption, k=1) == old.length_prior(caption, k=1) == pytest.approx(d)
+    tensors["index_seconds"][0] = -1.0                               # a damaged index is not used
+    save_file(tensors, str(model / FEATURES_FILE), metadata={"encoder": json.dumps(encoder.spec(), sort_keys=True)})
+    assert PromptCheck.load(model, encoder).index is None
+
+
 def test_the_vocabulary_keeps_each_examples_root_speed_to_tell_actions_done_in_place(tiny_model, tiny_dataset,
                                                                                        tmp_path):
     import numpy as np
@@ -233,6 +301,7 @@ def test_the_vocabulary_keeps_each_examples_root_speed_to_tell_actions_done_in_p
     doc = json.loads((model / VOCABULARY_FILE).read_text())
     del doc["speeds"]
     (model / VOCABULARY_FILE).write_text(json.dumps(doc))
+    (model / FEATURES_FILE).unlink()            # vocabularies without speeds had no caption index either
     assert load_pipeline(model).prompt_check.in_place("a person walks forward") is None
     doc["speeds"] = [-1.0] * len(doc["examples"])
     (model / VOCABULARY_FILE).write_text(json.dumps(doc))

@@ -53,13 +53,22 @@ def cmd_data_stats(a) -> int:
 def cmd_data_vocabulary(a) -> int:
     from ..models.io import load_denoiser
     from ..models.text import load_text_encoder
-    from ..models.vocabulary import build_vocabulary, save_vocabulary
+    from ..models.vocabulary import VOCABULARY_FILE, Vocabulary, build_vocabulary, save_vocabulary
     model = Path(a.model)
     _, doc = load_denoiser(model / "denoiser")
     vocab = build_vocabulary(a.dir, split=a.split)
+    if a.index_only:
+        path = model / VOCABULARY_FILE
+        try:
+            kept = Vocabulary.from_json(json.loads(path.read_text(encoding="utf-8")), str(path))
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"--index-only needs the model's vocabulary to keep: {path} ({e})") from None
+        kept.captions = vocab.captions
+        vocab = kept
     path = save_vocabulary(vocab, load_text_encoder(doc["config"]["text_encoder"]), model)
     print(f"wrote {path}: {len(vocab.actions)} actions, {len(vocab.examples)} example captions, "
-          f"{len(vocab.words)} words, manner words: {', '.join(vocab.styles) or 'none'}")
+          f"{len(vocab.words)} words, {len(vocab.captions)} captions in the length index, "
+          f"manner words: {', '.join(vocab.styles) or 'none'}")
     return 0
 
 
@@ -142,6 +151,9 @@ def add_parser(sub) -> None:
     v.add_argument("dir", help="the dataset (HumanML3D layout; labels.json gives the action of each motion)")
     v.add_argument("--model", default="assets/model", help="model directory holding denoiser/ (default: the embedded one)")
     v.add_argument("--split", default="train")
+    v.add_argument("--index-only", action="store_true",
+                   help="keep the model's vocabulary.json (its actions, words and example captions, which the "
+                        "warnings' threshold was set on) and write only the caption index of the length prior")
     v.set_defaults(func=cmd_data_vocabulary)
     n = data.add_parser(
         "bundle", help="a denoiser training config's data as VAE latents + text features, in parts of bounded size",

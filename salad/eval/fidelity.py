@@ -16,6 +16,7 @@ clean-up (salad.motion.cleanup: rigid bones, then the foot lock) that generate()
 """
 from __future__ import annotations
 
+import copy
 import re
 import time
 from dataclasses import dataclass
@@ -302,7 +303,8 @@ def rejudge(results: dict, data_root: str | Path | None = None) -> dict:
     """A stored fidelity result judged again under the current RULES (same samples, same classifier
     reads); the rules it was judged by before are replaced. With data_root, each row's real clips are
     chosen and measured again too, under the current reference_clips (runs stored before their settings
-    kept max_seconds were all made on 196-frame canvases)."""
+    kept max_seconds were all made on 196-frame canvases). `results` itself is left as it was."""
+    results = copy.deepcopy(results)
     if data_root is not None:
         labels = read_labels(data_root)
         settings = results["settings"]
