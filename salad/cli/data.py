@@ -56,13 +56,15 @@ def cmd_data_vocabulary(a) -> int:
     from ..models.vocabulary import VOCABULARY_FILE, Vocabulary, build_vocabulary, save_vocabulary
     model = Path(a.model)
     _, doc = load_denoiser(model / "denoiser")
-    vocab = build_vocabulary(a.dir, split=a.split)
+    kept = None
     if a.index_only:
         path = model / VOCABULARY_FILE
         try:
             kept = Vocabulary.from_json(json.loads(path.read_text(encoding="utf-8")), str(path))
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"--index-only needs the model's vocabulary to keep: {path} ({e})") from None
+    vocab = build_vocabulary(a.dir, split=a.split)
+    if kept is not None:
         kept.captions = vocab.captions
         vocab = kept
     path = save_vocabulary(vocab, load_text_encoder(doc["config"]["text_encoder"]), model)
