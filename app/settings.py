@@ -15,8 +15,8 @@ DEFAULT_PORT = 7860
 # 2-core CPU answers in reasonable time.
 MAX_STEPS = 200
 DEFAULT_STEPS = 50          # the teacher's (ddim, dpm); salad.pipeline.DEFAULT_STEPS has every sampler's
-# auto: the distilled student when the model has one (it matches the teacher's T2M FID within the
-# issue's bound at a fifteenth of the time: README, "Consistency student"), else the DDIM teacher
+# auto: the DDIM teacher for motions made from text (generate, edit, real-motion edits) and the distilled
+# student, when the model has one, for guided control (app.studio.Studio says why)
 DEFAULT_SAMPLER = "auto"
 STUDIO_SAMPLERS = ("auto", "ddim", "dpm", "consistency")
 MAX_CFG = 15.0

@@ -171,7 +171,7 @@ def test_the_student_refuses_what_it_cannot_do(client):
         edit_real(client, None, sampler="dpm")
 
 
-def test_a_consistency_default_starts_every_panel_on_the_student(student_pipe, pipe, tmp_path, caplog):
+def test_the_default_sampler_of_each_panel(student_pipe, pipe, tmp_path, caplog):
     ws = Workspace(tmp_path)
     try:
         p = props(build_studio(Studio(student_pipe, ws, sampler="consistency"), Settings(tmp_dir=tmp_path)))
@@ -180,15 +180,25 @@ def test_a_consistency_default_starts_every_panel_on_the_student(student_pipe, p
             assert p[radio]["value"] == "consistency" and p[steps]["value"] == 4, radio
             assert p[steps]["maximum"] == 50
         assert p["real-seed"]["visible"] is True and p["real-inversion"]["interactive"] is False
-        # the default (auto) is the student where there is one, and ddim quietly where there is none
-        assert Studio(student_pipe, ws).default_sampler == "consistency"
+        assert Studio(student_pipe, ws, sampler="consistency").control_sampler == "consistency"
+        # the default (auto): the teacher for motions from text, the student for guided control where there
+        # is one, and ddim quietly everywhere where there is none
+        auto = Studio(student_pipe, ws)
+        assert (auto.default_sampler, auto.control_sampler) == ("ddim", "consistency")
+        p = props(build_studio(auto, Settings(tmp_dir=tmp_path)))
+        for radio, steps, sampler, n in (("sampler", "steps", "ddim", 50), ("edit-sampler", "edit-steps", "ddim", 50),
+                                         ("control-sampler", "control-steps", "consistency", 4),
+                                         ("real-sampler", "real-steps", "ddim", 50)):
+            assert p[radio]["value"] == sampler and p[steps]["value"] == n, radio
         with caplog.at_level(logging.WARNING, logger="salad.studio"):
-            assert Studio(pipe, ws).default_sampler == "ddim"
+            plain = Studio(pipe, ws)
+        assert (plain.default_sampler, plain.control_sampler) == ("ddim", "ddim")
         assert "no consistency student" not in caplog.text
         # asking for the student of a model without one falls back to ddim, with a warning
         with caplog.at_level(logging.WARNING, logger="salad.studio"):
             studio = Studio(pipe, ws, sampler="consistency")
-        assert studio.default_sampler == "ddim" and "no consistency student" in caplog.text
+        assert (studio.default_sampler, studio.control_sampler) == ("ddim", "ddim")
+        assert "no consistency student" in caplog.text
         p = props(build_studio(studio, Settings(tmp_dir=tmp_path)))
         assert p["sampler"]["value"] == "ddim" and p["steps"]["value"] == 50
     finally:

@@ -104,7 +104,8 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
             with gr.Tab("Edit", id="edit", elem_id="edit-tab"):
                 ed = build_edit_panel(pipe, samplers, sampler)
             with gr.Tab("Control", id="control", elem_id="control-tab"):
-                ctl = build_control_panel(pipe, list_examples(studio.control_examples), samplers, sampler)
+                ctl = build_control_panel(pipe, list_examples(studio.control_examples), samplers,
+                                          studio.control_sampler)
             with gr.Tab("Real motion", id="real", elem_id="real-tab"):
                 real = build_real_panel(clips.choices() if clips else [], samplers, sampler)
         gr.Markdown(LICENCE_NOTE)
