@@ -146,7 +146,7 @@ class Studio:
         self.samplers = offered_samplers(pipe)
         control = sampler
         if sampler == "auto":
-            # The student misses its quality bound on the fidelity table (two to four classes fewer than the
+            # The student misses its quality bound on the fidelity table (one and three classes fewer than the
             # teacher, kicks at 0.28 m against 0.63: README, *The shipped pair*), so motions made from text start
             # on the teacher; on guided control the student is as accurate, skates less and answers 8x sooner.
             sampler, control = "ddim", "consistency" if "consistency" in self.samplers else "ddim"
