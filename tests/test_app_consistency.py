@@ -145,8 +145,9 @@ def test_the_studio_offers_the_student_and_its_steps(server, client):
     assert [c[1] for c in p["edit-sampler"]["choices"]] == ["consistency", "ddim", "dpm"]
     for elem in ("control-sampler", "real-sampler"):
         assert p[elem]["visible"] is not False and [c[1] for c in p[elem]["choices"]] == ["ddim", "consistency"]
-    # the default (auto) starts on the student, as the model has one
-    assert p["sampler"]["value"] == "consistency" and p["steps"]["value"] == 4
+    # the default (auto) starts generating on the teacher and guided control on the student, as the model has one
+    assert p["sampler"]["value"] == "ddim" and p["steps"]["value"] == 50
+    assert p["control-sampler"]["value"] == "consistency" and p["control-steps"]["value"] == 4
     # picking a sampler sets its default steps (and the student's range)
     for api in ("/sampler_steps", "/edit_sampler_steps", "/control_sampler_steps"):
         fast = client.predict("consistency", api_name=api)
