@@ -193,6 +193,10 @@ def _encode(prompts: list[str], encoder: TextEncoder, chunk: int = 64) -> torch.
     return torch.nn.functional.normalize(torch.cat(rows).float(), dim=-1)
 
 
+def _project(features: torch.Tensor, mean: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
+    return torch.nn.functional.normalize((features.float() - mean) @ basis, dim=-1)
+
+
 @dataclass
 class CaptionIndex:
     """Training captions as INDEX_DIMS principal components of their unit-length text features, with
@@ -209,14 +213,14 @@ class CaptionIndex:
         centred = (features - mean).double()
         # eigenvectors of the covariance: deterministic, unlike a randomised low-rank solver
         _, vectors = torch.linalg.eigh(centred.T @ centred)
-        basis = vectors[:, -min(INDEX_DIMS, len(features)):].flip(-1).float().contiguous()
-        index = cls(mean.float(), basis, torch.empty(0), torch.tensor(seconds, dtype=torch.float32),
-                    torch.tensor(speeds, dtype=torch.float32))
-        index.points = index.project(features).half().float()
-        return index
+        mean, basis = mean.float(), vectors[:, -min(INDEX_DIMS, len(features)):].flip(-1).float().contiguous()
+        # the points as stored (fp16), so a built index answers as the one read back
+        points = _project(features, mean, basis).half().float()
+        return cls(mean, basis, points, torch.tensor(seconds, dtype=torch.float32),
+                   torch.tensor(speeds, dtype=torch.float32))
 
     def project(self, features: torch.Tensor) -> torch.Tensor:
-        return torch.nn.functional.normalize((features.float() - self.mean) @ self.basis, dim=-1)
+        return _project(features, self.mean, self.basis)
 
     def tensors(self) -> dict[str, torch.Tensor]:
         return {"index_mean": self.mean, "index_basis": self.basis, "index_points": self.points.half(),
