@@ -146,9 +146,9 @@ class Studio:
         self.samplers = offered_samplers(pipe)
         control = sampler
         if sampler == "auto":
-            # The student misses its quality bound on the fidelity table (one and three classes fewer than the
-            # teacher, kicks at 0.28 m against 0.63: README, *The shipped pair*), so motions made from text start
-            # on the teacher; on guided control the student is as accurate, skates less and answers 8x sooner.
+            # The embedded student misses its quality bound on the fidelity table (README, *The shipped pair*),
+            # so motions made from text start on the teacher; guided control, where its benchmark favours the
+            # student, starts on it.
             sampler, control = "ddim", "consistency" if "consistency" in self.samplers else "ddim"
         elif sampler == "consistency" and sampler not in self.samplers:
             log.warning("the consistency sampler was asked for but %s has no consistency student (a consistency/ "
