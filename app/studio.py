@@ -146,10 +146,9 @@ class Studio:
         self.samplers = offered_samplers(pipe)
         control = sampler
         if sampler == "auto":
-            # The embedded student misses its quality bound on the fidelity table (README, *The shipped pair*),
-            # so motions made from text start on the teacher; guided control, where its benchmark favours the
-            # student, starts on it.
-            sampler, control = "ddim", "consistency" if "consistency" in self.samplers else "ddim"
+            # the student starts only the panels its checkpoint says it was measured fit for (the embedded
+            # one: guided control, not motions from text; README, *The shipped pair*)
+            sampler, control = ("consistency" if pipe.student_preferred(use) else "ddim" for use in ("text", "control"))
         elif sampler == "consistency" and sampler not in self.samplers:
             log.warning("the consistency sampler was asked for but %s has no consistency student (a consistency/ "
                         "checkpoint); the panels default to ddim", pipe.source or "the model")

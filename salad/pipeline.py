@@ -83,6 +83,8 @@ STILL_FEET_MPS = 0.1
 # (skating 0.042), without them one path strayed over 20 cm.
 CONTROL_FEET_TARGETS = 0.1
 DEFAULT_STEPS = {"ddim": 50, "dpm": 50, "consistency": 4}
+# what a student can be measured fit for (meta.consistency.default_for, Pipeline.student_preferred)
+STUDENT_USES = ("text", "control")
 # The teacher's sampling: DDIM with fresh noise at every step (eta = 1) and guidance rescaled
 # halfway to the conditional prediction's scale. The deterministic DDIM (eta = 0) blurs gait
 # phases: on the embedded model its walks kept a foot still in 0.62 of their frames against
@@ -262,6 +264,15 @@ class Pipeline:
     def guidance_range(self) -> tuple[float, float]:
         lo, hi = self.student_info.get("guidance", (0.0, 30.0))
         return float(lo), float(hi)
+
+    def student_preferred(self, use: str) -> bool:
+        """Whether the student was measured to meet its quality bounds against the teacher for `use`
+        ("text": motions from text, their edits and real-motion edits; "control": guided control), as
+        its checkpoint records in meta.consistency.default_for. A student without that record (a fresh
+        distillation) is preferred nowhere until someone has measured it."""
+        if use not in STUDENT_USES:
+            raise ValueError(f"use must be one of {', '.join(STUDENT_USES)}, got {use!r}")
+        return self.student is not None and use in self.student_info.get("default_for", ())
 
     # ------------------------------------------------------------ building blocks
     def autocast(self):
@@ -752,4 +763,8 @@ def load_student(root: Path, teacher_config: dict, vae_checksums: set[str]) -> t
     for key in ("text_encoder", "diffusion", "canvas_frames"):
         if cfg.get(key) != teacher_config.get(key):
             raise CheckpointError(f"{path}: the student's {key} differs from the denoiser's; redistil it")
+    uses = info.get("default_for", [])
+    if not isinstance(uses, list) or not set(uses) <= set(STUDENT_USES):
+        raise CheckpointError(f"{path}/config.json: meta.consistency.default_for must be a list drawn from "
+                              f"{', '.join(STUDENT_USES)}, got {uses!r}")
     return student, info

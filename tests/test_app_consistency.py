@@ -172,7 +172,7 @@ def test_the_student_refuses_what_it_cannot_do(client):
         edit_real(client, None, sampler="dpm")
 
 
-def test_the_default_sampler_of_each_panel(student_pipe, pipe, tmp_path, caplog):
+def test_the_default_sampler_of_each_panel(student_pipe, pipe, tmp_path, caplog, monkeypatch):
     ws = Workspace(tmp_path)
     try:
         p = props(build_studio(Studio(student_pipe, ws, sampler="consistency"), Settings(tmp_dir=tmp_path)))
@@ -182,8 +182,12 @@ def test_the_default_sampler_of_each_panel(student_pipe, pipe, tmp_path, caplog)
             assert p[steps]["maximum"] == 50
         assert p["real-seed"]["visible"] is True and p["real-inversion"]["interactive"] is False
         assert Studio(student_pipe, ws, sampler="consistency").control_sampler == "consistency"
-        # the default (auto): the teacher for motions from text, the student for guided control where there
-        # is one, and ddim quietly everywhere where there is none
+        # the default (auto): the student where its checkpoint records that it was measured fit (the
+        # embedded one: guided control), else the teacher, quietly, as where there is no student
+        assert (Studio(student_pipe, ws).default_sampler, Studio(student_pipe, ws).control_sampler) == ("ddim", "ddim")
+        monkeypatch.setitem(student_pipe.student_info, "default_for", ["text", "control"])
+        assert Studio(student_pipe, ws).default_sampler == "consistency"
+        monkeypatch.setitem(student_pipe.student_info, "default_for", ["control"])
         auto = Studio(student_pipe, ws)
         assert (auto.default_sampler, auto.control_sampler) == ("ddim", "consistency")
         p = props(build_studio(auto, Settings(tmp_dir=tmp_path)))

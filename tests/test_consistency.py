@@ -3,6 +3,7 @@ that run it (generate, edit, control, real-motion edits)."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -278,6 +279,33 @@ def test_a_teacher_checkpoint_is_not_taken_for_a_student(tiny_student, tmp_path)
     (model / "consistency").symlink_to((tiny_student / "denoiser").resolve())
     with pytest.raises(CheckpointError, match="not a consistency-distilled student"):
         load_pipeline(model)
+
+
+def test_the_student_is_preferred_only_where_its_checkpoint_says_so(tiny_student, student_pipe, tmp_path):
+    from salad.checkpoint import CheckpointError
+    from salad.pipeline import load_pipeline
+
+    # a fresh distillation records no measurement, so it is preferred nowhere
+    assert not student_pipe.student_preferred("text") and not student_pipe.student_preferred("control")
+    with pytest.raises(ValueError, match="use must be one of text, control"):
+        student_pipe.student_preferred("generate")
+
+    def with_uses(uses):
+        model = tmp_path / f"m{len(list(tmp_path.iterdir()))}"
+        model.mkdir()
+        for part in ("vae", "denoiser"):
+            (model / part).symlink_to((tiny_student / part).resolve())
+        shutil.copytree(tiny_student / "consistency", model / "consistency")
+        doc = json.loads((model / "consistency" / "config.json").read_text())
+        doc["meta"]["consistency"]["default_for"] = uses
+        (model / "consistency" / "config.json").write_text(json.dumps(doc))
+        return model
+
+    measured = load_pipeline(with_uses(["control"]), bf16=False)
+    assert measured.student_preferred("control") and not measured.student_preferred("text")
+    for bad in (["generate"], "control"):
+        with pytest.raises(CheckpointError, match="default_for must be a list drawn from text, control"):
+            load_pipeline(with_uses(bad))
 
 
 def test_consistency_control_follows_targets_and_composes_with_an_edit(student_pipe):

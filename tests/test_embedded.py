@@ -25,6 +25,13 @@ def test_embedded_model_makes_a_plausible_motion_of_the_requested_length(pipe):
     assert bones.std() < 0.05, "bone lengths stay put"
 
 
+def test_embedded_student_is_recorded_fit_for_guided_control_only(pipe):
+    """It misses its fidelity bound on motions from text (README, *The shipped pair*), so the studio's
+    text panels start on the teacher."""
+    assert pipe.student is not None
+    assert pipe.student_preferred("control") and not pipe.student_preferred("text")
+
+
 def test_embedded_model_chooses_a_length_itself(pipe):
     m = pipe.generate("a person raises their left hand", seed=1, steps=20)
     assert 16 <= m.frames <= pipe.canvas_frames and m.frames % 4 == 0
