@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from salad.cli import main
 from salad.data.captions import caption_line, captions_for
 from salad.data.dataset import MotionDataset
 from salad.eval import metrics as M
@@ -296,8 +297,20 @@ def test_classifier_trains_saves_and_loads(labelled_dataset, tmp_path):
     assert clf.classes["content"] == ["run", "walk", "walk-turn-left", "walk-turn-right"]
     assert clf.classes["side"] == ["none", "left", "right"]
     summary = json.loads((tmp_path / "clf" / "summary.json").read_text())
-    assert set(summary["test"]) == {"content", "style", "side"}
+    assert set(summary["test"]) == {"content", "style", "side"} and isinstance(summary["warnings"], list)
     assert 0 <= summary["test"]["content"]["accuracy"] <= 1
+    for split, n in (("train", 20), ("val", 8), ("test", 8)):      # every motion counted once per head
+        classes = summary[split]["content"]["classes"]
+        assert summary[split]["content"]["n"] == n == sum(c["n"] for c in classes.values())
+        right = n - sum(sum(c["wrong"].values()) for c in classes.values())
+        assert right == round(summary[split]["content"]["accuracy"] * n)
+    # the same through `salad eval-classifier`, with its report
+    assert main(["eval-classifier", "--data", str(labelled_dataset), "--classifier", str(tmp_path / "clf" / "model"),
+                 "--splits", "train, test", "--out", str(tmp_path / "ev")]) == 0
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert res["test"] == summary["test"] and "val" not in res
+    assert "| train | 20 |" in (tmp_path / "ev" / "report.md").read_text()
+    assert main(["eval-classifier", "--data", str(labelled_dataset), "--splits", "dev", "--out", str(tmp_path / "x")]) == 2
     ds = MotionDataset(labelled_dataset, "test", max_frames=10 ** 9)
     feats = [it.features for it in ds.items]
     pred = clf.predict(feats)
@@ -306,6 +319,14 @@ def test_classifier_trains_saves_and_loads(labelled_dataset, tmp_path):
     np.testing.assert_allclose(pred["content_probs"].sum(1), 1.0, atol=1e-5)
     again = load_classifier(tmp_path / "clf" / "model").predict(feats)
     np.testing.assert_array_equal(again["content_probs"], pred["content_probs"])
+
+
+def test_a_class_called_something_else_in_most_of_its_motions_is_named():
+    from salad.training.classifier_task import misread_classes
+
+    lines = misread_classes({"kick": {"n": 2, "wrong": {"punch": 2}}, "walk": {"n": 300, "wrong": {"run": 3}},
+                             "bow": {"n": 4, "wrong": {"guide": 2}}})
+    assert lines == ["kick: 2 of its 2 training motions are called punch (2)"]
 
 
 def test_classifier_learns_the_turn_direction(labelled_dataset):

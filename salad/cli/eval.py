@@ -1,5 +1,5 @@
 """`salad eval` (the T2M protocol) and the benchmarks `salad eval-control`, `eval-edit`,
-`eval-fidelity`, `eval-length`, `eval-real-edit` and `eval-vae`."""
+`eval-fidelity`, `eval-length`, `eval-real-edit`, `eval-vae` and `eval-classifier`."""
 from __future__ import annotations
 
 import argparse
@@ -386,4 +386,47 @@ def cmd_eval_vae(a) -> int:
         results.append(evaluate_vae(vae, a.data, split=a.split, seed=a.seed, progress=update, device=device))
         bar.close()
     print(write_vae_report(results, a.out, a.split).read_text())
+    return 0
+
+
+def add_eval_classifier(sub) -> None:
+    p = sub.add_parser("eval-classifier", help="the content/style/side classifier on real motions: accuracy per "
+                                               "split and what it calls each class")
+    p.add_argument("--data", required=True, help="labelled HumanML3D-layout dataset (labels.json)")
+    p.add_argument("--classifier", default=str(EMBEDDED_CLASSIFIER),
+                   help="classifier checkpoint (default: the one shipped in assets/eval)")
+    p.add_argument("--splits", default="train,val,test", help="comma-separated splits")
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--out", required=True, help="directory for results.json and report.md")
+    p.set_defaults(func=cmd_eval_classifier)
+
+
+def cmd_eval_classifier(a) -> int:
+    import torch
+    from ..training.classifier_task import classifier_summary
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    splits = [s.strip() for s in _csv(a.splits)]
+    if not splits or not set(splits) <= {"train", "val", "test"}:
+        raise ValueError(f"--splits takes train, val and/or test, got {a.splits!r}")
+    results = {"classifier": str(a.classifier), "data": str(a.data),
+               **classifier_summary(load_classifier(a.classifier), a.data, splits)}
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
+    lines = [f"# Classifier `{a.classifier}` on the real motions of `{a.data}`", "",
+             "| split | motions | content | style | side |", "|---|---|---|---|---|"]
+    for s in splits:
+        r = results[s]
+        lines.append(f"| {s} | {r['content']['n']} | " + " | ".join(f"{r[h]['accuracy']:.4f}" if h in r else "–"
+                                                                 for h in ("content", "style", "side")) + " |")
+    lines += ["", "Content classes with wrong calls (true class: motions, wrong calls):", ""]
+    for s in splits:
+        for name, c in sorted(results[s]["content"]["classes"].items()):
+            if c["wrong"]:
+                calls = ", ".join(f"{k} {v}" for k, v in sorted(c["wrong"].items()))
+                lines.append(f"- {s}, {name}: {c['n']}; {calls}")
+    lines += ["", "Warnings: " + ("; ".join(results["warnings"]) or "none")]
+    atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
+    print("\n".join(lines))
     return 0
