@@ -403,7 +403,7 @@ def add_eval_classifier(sub) -> None:
 
 def cmd_eval_classifier(a) -> int:
     import torch
-    from ..training.classifier_task import classifier_summary
+    from ..training.classifier_task import classifier_summary, write_classifier_report
     if a.threads:
         torch.set_num_threads(a.threads)
     splits = [s.strip() for s in _csv(a.splits)]
@@ -411,22 +411,5 @@ def cmd_eval_classifier(a) -> int:
         raise ValueError(f"--splits takes train, val and/or test, got {a.splits!r}")
     results = {"classifier": str(a.classifier), "data": str(a.data),
                **classifier_summary(load_classifier(a.classifier), a.data, splits)}
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
-    lines = [f"# Classifier `{a.classifier}` on the real motions of `{a.data}`", "",
-             "| split | motions | content | style | side |", "|---|---|---|---|---|"]
-    for s in splits:
-        r = results[s]
-        lines.append(f"| {s} | {r['content']['n']} | " + " | ".join(f"{r[h]['accuracy']:.4f}" if h in r else "–"
-                                                                 for h in ("content", "style", "side")) + " |")
-    lines += ["", "Content classes with wrong calls (true class: motions, wrong calls):", ""]
-    for s in splits:
-        for name, c in sorted(results[s]["content"]["classes"].items()):
-            if c["wrong"]:
-                calls = ", ".join(f"{k} {v}" for k, v in sorted(c["wrong"].items()))
-                lines.append(f"- {s}, {name}: {c['n']}; {calls}")
-    lines += ["", "Warnings: " + ("; ".join(results["warnings"]) or "none")]
-    atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    print(write_classifier_report(results, splits, a.out).read_text())
     return 0

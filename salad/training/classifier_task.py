@@ -198,3 +198,25 @@ def misread_classes(per_class: dict[str, dict]) -> list[str]:
     return [f"{name}: {sum(c['wrong'].values())} of its {c['n']} training motions are called "
             + ", ".join(f"{k} ({v})" for k, v in sorted(c["wrong"].items()))
             for name, c in sorted(per_class.items()) if 2 * sum(c["wrong"].values()) > c["n"]]
+
+
+def write_classifier_report(results: dict, splits, out: str | Path) -> Path:
+    """results.json and report.md of `salad eval-classifier` (classifier_summary plus its inputs); the report's path."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
+    lines = [f"# Classifier `{results['classifier']}` on the real motions of `{results['data']}`", "",
+             "| split | motions | content | style | side |", "|---|---|---|---|---|"]
+    for s in splits:
+        r = results[s]
+        lines.append(f"| {s} | {r['content']['n']} | "
+                     + " | ".join(f"{r[h]['accuracy']:.4f}" if h in r else "–" for h in ("content", "style", "side"))
+                     + " |")
+    lines += ["", "Content classes with wrong calls (true class: motions; wrong calls):", ""]
+    for s in splits:
+        for name, c in sorted(results[s]["content"]["classes"].items()):
+            if c["wrong"]:
+                lines.append(f"- {s}, {name}: {c['n']}; " + ", ".join(f"{k} {v}" for k, v in sorted(c["wrong"].items())))
+    lines += ["", "Warnings: " + ("; ".join(results["warnings"]) or "none")]
+    atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
+    return out / "report.md"
