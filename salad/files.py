@@ -50,3 +50,9 @@ def atomic_write(path: str | Path, write: Callable) -> Path:
 def atomic_write_text(path: str | Path, text: str) -> Path:
     """Write a UTF-8 text file (LF line ends) atomically."""
     return atomic_write(path, lambda f: f.write(text.encode("utf-8")))
+
+
+def shown_path(path: str | Path) -> str:
+    """A path as a report shows it: relative to the repository when inside it."""
+    p = Path(path).resolve()
+    return str(p.relative_to(REPO_ROOT)) if p.is_relative_to(REPO_ROOT) else str(path)

@@ -18,7 +18,7 @@ from ..eval.fidelity import evaluate_fidelity, fidelity_classes, rejudge, report
 from ..eval.length_dist import DEFAULT_BIN_FRAMES, MIN_FRAMES, evaluate_lengths, write_length_report
 from ..eval.paraphrases import PROMPT_SETS
 from ..eval.real_edit_bench import SDEDIT_STRENGTHS, run_real_edit_bench
-from ..files import atomic_write_text
+from ..files import atomic_write_text, shown_path
 from .common import add_device, add_sampling, apply_sampling, device_of, progress_bar
 
 
@@ -409,7 +409,7 @@ def cmd_eval_classifier(a) -> int:
     splits = [s.strip() for s in _csv(a.splits)]
     if not splits or not set(splits) <= {"train", "val", "test"}:
         raise ValueError(f"--splits takes train, val and/or test, got {a.splits!r}")
-    results = {"classifier": str(a.classifier), "data": str(a.data),
+    results = {"classifier": shown_path(a.classifier), "data": str(a.data),
                **classifier_summary(load_classifier(a.classifier), a.data, splits)}
     print(write_classifier_report(results, splits, a.out).read_text())
     return 0

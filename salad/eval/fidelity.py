@@ -25,7 +25,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..files import REPO_ROOT
+from ..files import shown_path
 from ..motion import skeleton as sk
 from ..motion.cleanup import clean_motion
 from ..motion.representation import FPS, features_to_joints
@@ -213,12 +213,6 @@ def reference_clips(data_root: str | Path, cls: FidelityClass, labels: dict, spl
 
 # ---------------------------------------------------------------- the benchmark
 
-def _shown(path: str) -> str:
-    """A model path as a report shows it: relative to the repository when inside it."""
-    p = Path(path).resolve()
-    return str(p.relative_to(REPO_ROOT)) if p.is_relative_to(REPO_ROOT) else str(path)
-
-
 def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | None = None, cfg: float = 7.5,
                       sampler: str = "ddim", classes=None, split: str = "test", classifier=None,
                       progress: Callable[[int, int], None] | None = None, length: str = "auto",
@@ -268,7 +262,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | 
         rows.append(row)
     return {"rows": rows, "rules": RULES, "settings": {
         "seeds": seeds, "steps": steps, "cfg": cfg, "sampler": sampler, **pipe.sampler_settings(sampler),
-        "split": split, "max_seconds": pipe.max_seconds, "model": _shown(pipe.source),
+        "split": split, "max_seconds": pipe.max_seconds, "model": shown_path(pipe.source),
         "length": length, "length_band": AUTO_LENGTH_BAND if length == "auto" else None, "prompt_set": prompt_set, "seconds": round(time.perf_counter() - started, 1)},
         "summary": summary(rows, classifier)}
 
@@ -337,7 +331,7 @@ def summary(rows: list[dict], classifier=None) -> dict:
         total = sum(r["classified"]["total"] for r in rows)
         out["classified"] = {"content_correct": correct, "total": total,
                              "share": round(correct / total, 4) if total else None,
-                             "classifier": _shown(getattr(classifier, "meta", {}).get("path", "?"))}
+                             "classifier": shown_path(getattr(classifier, "meta", {}).get("path", "?"))}
     return out
 
 
