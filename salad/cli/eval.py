@@ -411,5 +411,5 @@ def cmd_eval_classifier(a) -> int:
         raise ValueError(f"--splits takes train, val and/or test, got {a.splits!r}")
     results = {"classifier": shown_path(a.classifier), "data": str(a.data),
                **classifier_summary(load_classifier(a.classifier), a.data, splits)}
-    print(write_classifier_report(results, splits, a.out).read_text())
+    print(write_classifier_report(results, a.out).read_text())
     return 0

@@ -74,14 +74,12 @@ def accuracy_report(clf: Classifier, ds: MotionDataset, targets: dict[str, np.nd
     out = {}
     for h, p in probs.items():
         pred, y = p.argmax(1), targets[h]
-        present = np.unique(y)
-        recall = [float((pred[y == c] == c).mean()) for c in present]
-        names = clf.classes[h]
-        per_class = {}
-        for c in present:
+        names, per_class = clf.classes[h], {}
+        for c in np.unique(y):
             wrong = pred[(y == c) & (pred != c)]
             per_class[names[c]] = {"n": int((y == c).sum()),
                                    "wrong": {names[w]: int((wrong == w).sum()) for w in np.unique(wrong)}}
+        recall = [1 - sum(c["wrong"].values()) / c["n"] for c in per_class.values()]
         out[h] = {"accuracy": float((pred == y).mean()), "balanced_accuracy": float(np.mean(recall)),
                   "n": int(len(y)), "classes": per_class}
     return out
@@ -200,8 +198,9 @@ def misread_classes(per_class: dict[str, dict]) -> list[str]:
             for name, c in sorted(per_class.items()) if 2 * sum(c["wrong"].values()) > c["n"]]
 
 
-def write_classifier_report(results: dict, splits, out: str | Path) -> Path:
+def write_classifier_report(results: dict, out: str | Path) -> Path:
     """results.json and report.md of `salad eval-classifier` (classifier_summary plus its inputs); the report's path."""
+    splits = [s for s in ("train", "val", "test") if s in results]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2))
