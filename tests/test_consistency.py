@@ -165,6 +165,40 @@ def test_the_trajectory_target_is_the_teachers_own_guided_solve(tiny_model):
     assert not torch.allclose(other[0], x0[2], atol=1e-3)
 
 
+def test_the_distillation_target_guides_as_the_teachers_sampler_does(tiny_model):
+    """With cfg_rescale and cfg_cutoff the teacher's guided prediction is sampling's own mix, row by
+    row at each row's scale, and the conditional prediction alone below the cutoff."""
+    from salad.diffusion.sampling import cfg_combine
+    from salad.models.io import load_denoiser
+    from salad.training.consistency_task import ConsistencyTraining
+
+    teacher, _ = load_denoiser(tiny_model / "denoiser")
+    m = ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "trajectory",
+                            teacher_steps=10, cfg_rescale=0.7, cfg_cutoff=0.3).eval()
+    g = torch.Generator().manual_seed(1)
+    B, D = 2, teacher.config.text_dim
+    text = torch.randn(B, 4, D, generator=g)
+    batch = {"guidance": torch.tensor([3.0, 8.0]), "frame_mask": None, "auto": torch.zeros(B, dtype=torch.bool),
+             "text2": torch.cat((torch.zeros(B, 4, D), text)),
+             "text_mask2": torch.cat((torch.zeros(B, 4, dtype=torch.bool), torch.ones(B, 4, dtype=torch.bool))),
+             "pooled2": torch.cat((torch.zeros(B, D), torch.randn(B, D, generator=g)))}
+    zt = torch.randn(B, 5, 7, teacher.config.latent_dim, generator=g)
+    with torch.no_grad():
+        for step in (999, 300, 299, 20):
+            t = torch.full((B,), step)
+            out = teacher(torch.cat((zt, zt)), torch.cat((t, t)), batch["text2"], batch["text_mask2"], None,
+                          pooled_text=batch["pooled2"], auto_length=torch.zeros(2 * B, dtype=torch.bool)).float()
+            got = m._guided(zt, t, batch)
+            for i, w in enumerate((3.0, 8.0)):
+                want = cfg_combine(out[[i, B + i]], w if step >= 300 else 1.0, 0.7)
+                torch.testing.assert_close(got[i:i + 1], want, atol=1e-5, rtol=1e-5)
+    plain = ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "trajectory",
+                                teacher_steps=10).eval()
+    with torch.no_grad():
+        t = torch.full((B,), 999)
+        assert not torch.allclose(plain._guided(zt, t, batch), m._guided(zt, t, batch), atol=1e-3)
+
+
 def test_trajectory_distillation_replays_its_solves_and_resumes(tiny_model, tiny_dataset, tmp_path):
     from salad.cli import main
     from salad.models.io import load_denoiser
@@ -188,7 +222,7 @@ def test_distillation_config_errors_are_clear(tiny_model, tiny_dataset, tmp_path
     from salad.cli import main
 
     for extra, message in (('target = "progressive"', "target must be one of lcd, trajectory"),
-                           ("replay = 0", "replay >= 1")):
+                           ("replay = 0", "replay >= 1"), ("cfg_cutoff = 1.0", "cfg_cutoff in [0, 1)")):
         cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra)
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
         assert message in capsys.readouterr().err

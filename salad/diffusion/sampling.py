@@ -12,12 +12,15 @@ from .schedule import NoiseSchedule
 ModelFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 
-def cfg_combine(out: torch.Tensor, scale: float, rescale: float = 0.0) -> torch.Tensor:
-    """The batched forward's rows are [unconditional..., conditional...]; mix them.
+def cfg_combine(out: torch.Tensor, scale: float | torch.Tensor, rescale: float = 0.0) -> torch.Tensor:
+    """The batched forward's rows are [unconditional..., conditional...]; mix them, at one scale
+    or at each row's own (a tensor of B scales).
     rescale (phi, Lin et al. 2024) pulls each guided row's standard deviation towards its
     conditional row's: a large scale inflates the prediction, which averages gait phases."""
     uncond, cond = out.chunk(2, dim=0)
-    if scale == 1.0:
+    if isinstance(scale, torch.Tensor):
+        scale = scale.to(out).view(-1, *([1] * (out.ndim - 1)))
+    elif scale == 1.0:
         return cond
     guided = uncond + scale * (cond - uncond)
     if rescale > 0:

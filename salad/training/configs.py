@@ -132,3 +132,7 @@ class ConsistencyTrainConfig:
     teacher_steps: int = 25
     replay: int = 4                   # optimiser steps per teacher solve (trajectory only)
     replay_buffer: int = 16           # recent solves the replayed steps draw from
+    # the teacher's guidance as the student learns it: rescaled (sampling.cfg_combine) and none
+    # below cfg_cutoff x T, as the pipeline's teacher sampling does (0, 0: plain CFG at every step)
+    cfg_rescale: float = 0.0
+    cfg_cutoff: float = 0.0

@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from ..checkpoint import CheckpointError, load_state_strict
 from ..config import from_dict, to_dict
 from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_timesteps
+from ..diffusion.sampling import cfg_combine
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
 from ..models.denoiser import Denoiser
 from ..models.io import load_consistency_student, load_denoiser, save_denoiser, vae_latent_checksums, vae_latent_origin
@@ -41,7 +42,8 @@ COND_KEYS = ("text", "text_mask", "frame_mask", "pooled", "auto", "text2", "text
 
 class ConsistencyTraining(nn.Module):
     def __init__(self, teacher: Denoiser, schedule: NoiseSchedule, target_decay: float, huber_c: float,
-                 objective: str = "lcd", teacher_steps: int = 25, replay_buffer: int = 16):
+                 objective: str = "lcd", teacher_steps: int = 25, replay_buffer: int = 16,
+                 cfg_rescale: float = 0.0, cfg_cutoff: float = 0.0):
         super().__init__()
         if objective not in OBJECTIVES:
             raise ValueError(f"unknown consistency target {objective!r}; choose one of {', '.join(OBJECTIVES)}")
@@ -54,6 +56,9 @@ class ConsistencyTraining(nn.Module):
         self.target = copy.deepcopy(self.student).requires_grad_(False)
         self.teacher = teacher.requires_grad_(False)
         self.schedule, self.target_decay, self.huber_c = schedule, target_decay, huber_c
+        # the teacher's guidance as its sampler applies it (sampling.sample), so that the student
+        # learns the teacher's motions as the studio gets them
+        self.cfg_rescale, self.unguided_below = cfg_rescale, cfg_cutoff * schedule.config.train_steps
         self.k = schedule.config.train_steps // CONSISTENCY_GRID
         self.objective = objective
         # trajectory: the student learns at the sampler's own timesteps; the teacher's solve passes
@@ -81,13 +86,14 @@ class ConsistencyTraining(nn.Module):
                     pooled_text=batch["pooled"], auto_length=batch["auto"])
 
     def _guided(self, zt: torch.Tensor, t: torch.Tensor, batch: dict) -> torch.Tensor:
-        """The teacher's output with classifier-free guidance at each row's own scale (one forward)."""
+        """The teacher's output with classifier-free guidance at each row's own scale (one forward),
+        rescaled, and none below the cutoff."""
         fm = batch["frame_mask"]
         out = self.teacher(torch.cat((zt, zt)), torch.cat((t, t)), batch["text2"], batch["text_mask2"],
                            None if fm is None else torch.cat((fm, fm)), pooled_text=batch["pooled2"],
                            auto_length=torch.cat((batch["auto"], batch["auto"]))).float()
-        uncond, c = out.chunk(2)
-        return uncond + batch["guidance"].view(-1, 1, 1, 1) * (c - uncond)
+        scale = torch.where(t >= self.unguided_below, batch["guidance"].to(out), 1.0)
+        return cfg_combine(out, scale, self.cfg_rescale)
 
     def _huber(self, pred: torch.Tensor, target: torch.Tensor, fm: torch.Tensor | None) -> torch.Tensor:
         err = torch.sqrt((pred - target) ** 2 + self.huber_c ** 2) - self.huber_c
@@ -163,6 +169,9 @@ class ConsistencyTask:
             raise ValueError(f"target_decay must be in (0, 1), got {cfg.target_decay}")
         if cfg.target not in OBJECTIVES:
             raise ValueError(f"target must be one of {', '.join(OBJECTIVES)}, got {cfg.target!r}")
+        if not (0.0 <= cfg.cfg_rescale <= 1.0 and 0.0 <= cfg.cfg_cutoff < 1.0):
+            raise ValueError(f"need cfg_rescale in [0, 1] and cfg_cutoff in [0, 1), got {cfg.cfg_rescale}, "
+                             f"{cfg.cfg_cutoff}")
         if cfg.replay < 1 or cfg.replay_buffer < 1 or not 2 <= cfg.teacher_steps <= 200:
             raise ValueError(f"need replay >= 1, replay_buffer >= 1 and teacher_steps in 2..200, got "
                              f"{cfg.replay}, {cfg.replay_buffer}, {cfg.teacher_steps}")
@@ -189,7 +198,7 @@ class ConsistencyTask:
         self.schedule = self.data.schedule
         self.grid = grid_timesteps(self.schedule)
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
-                                         cfg.teacher_steps, cfg.replay_buffer)
+                                         cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff)
         self._drawn = 0
 
     def _replayed(self, rng: np.random.Generator) -> dict | None:
@@ -247,6 +256,7 @@ class ConsistencyTask:
     def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
         teacher_meta = self.teacher_doc.get("meta", {})
         consistency = {"guidance": [self.cfg.guidance_min, self.cfg.guidance_max], "grid_steps": CONSISTENCY_GRID,
+                       "cfg_rescale": self.cfg.cfg_rescale, "cfg_cutoff": self.cfg.cfg_cutoff,
                        "teacher": {"path": self.cfg.teacher, "step": teacher_meta.get("step"),
                                    "sha256": self.teacher_doc["files"]["denoiser"]["sha256"]}}
         save_denoiser(path, model.target, self.schedule.config, self.data.text_spec, self.data.canvas,
