@@ -26,6 +26,8 @@ class StudioApp:
         try:
             self.demo.close()
         finally:
+            if self.studio is not None:
+                self.studio.model_thread.close()
             self.workspace.close()
 
 
@@ -63,20 +65,27 @@ def create_app(settings: Settings, pipe=None) -> StudioApp:
     workspace = Workspace(settings.tmp_dir, ttl_s=settings.session_ttl_s, cache_key=_gradio_cache_key)
     # Gradio copies every file it serves into its cache; keep that cache inside our root.
     os.environ["GRADIO_TEMP_DIR"] = str(workspace.gradio_cache)
+    from .model_thread import ModelThread
+
+    model_thread = ModelThread()
     try:
         from .studio import Studio
         from .ui.layout import build_error_page, build_studio
 
         error = None
         if pipe is None:
-            pipe, error = _load(settings)
+            pipe, error = model_thread.run(_load, settings)
         if pipe is None:
+            model_thread.close()
             return StudioApp(build_error_page(error), workspace, None, error)
-        studio = Studio(pipe, workspace, settings.control_examples, sampler=settings.sampler)
+        model_thread.own_torch()
+        studio = Studio(pipe, workspace, settings.control_examples, sampler=settings.sampler,
+                        model_thread=model_thread)
         demo = build_studio(studio, settings)
         demo.queue(default_concurrency_limit=settings.concurrency, max_size=settings.queue_size)
         return StudioApp(demo, workspace, studio)
     except BaseException:
+        model_thread.close()
         workspace.close()
         raise
 

@@ -27,6 +27,7 @@ from salad.motion import skeleton as sk
 
 from . import controls
 from .figures import control_top_view, frames_to_restyle_slider, note_figure, plot_data
+from .model_thread import ModelThread
 from .session import Result, Session
 from .validation import AttentionRequest, ControlRequest, EditRequest, GenerateRequest
 from .workspace import Workspace
@@ -139,8 +140,11 @@ def offered_samplers(pipe) -> tuple[str, ...]:
 class Studio:
     """Generation and attention views over one loaded pipeline, for many sessions."""
 
-    def __init__(self, pipe, workspace: Workspace, control_examples: Path | None = None, sampler: str = "auto"):
+    def __init__(self, pipe, workspace: Workspace, control_examples: Path | None = None, sampler: str = "auto",
+                 model_thread: ModelThread | None = None):
         self.pipe = pipe
+        # every model call runs on this thread (app.model_thread says why); best the one that loaded `pipe`
+        self.model_thread = model_thread or ModelThread()
         self.workspace = workspace
         self.control_examples = control_examples      # a folder of control .npy files, or None
         self.samplers = offered_samplers(pipe)
@@ -177,7 +181,7 @@ class Studio:
             progress("waiting for the model", 0, steps)
         with self._model_lock:
             t1 = time.perf_counter()
-            value = run(lambda i, n: progress("sampling", i, n))
+            value = self.model_thread.run(run, lambda i, n: progress("sampling", i, n))
         return value, {"wait_s": t1 - t0, "sample_s": time.perf_counter() - t1}
 
     @staticmethod
@@ -258,9 +262,9 @@ class Studio:
                     return True
                 progress("refining the planted feet", 0, 1)
                 t0 = time.perf_counter()
-                motion, source = self.pipe.refine_feet(result.motion), result.source
+                motion, source = self.model_thread.run(self.pipe.refine_feet, result.motion), result.source
                 if source is not None:
-                    source = self.pipe.refine_feet(source)
+                    source = self.model_thread.run(self.pipe.refine_feet, source)
                 result.timings["refine_s"] = time.perf_counter() - t0
                 result.motion, result.source = motion, source
             result.forget(("skeleton",))
