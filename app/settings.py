@@ -54,7 +54,7 @@ class Settings:
     session_ttl_s: float = 2 * 3600  # idle sessions and their files are removed after this
     prune_every_s: float = 600
     tmp_dir: Path | None = None     # parent of the studio's private temp root
-    threads: int | None = None      # torch threads; None keeps torch's default
+    threads: int | None = None      # torch threads of the model thread (app.model_thread); None: torch's default
     bf16: bool = False             # measured: fp32 is faster for the studio's one-motion requests
     control_examples: Path | None = None   # a folder of MoLA-style control .npy files offered in the Control tab
     clips: Path | None = None       # a dataset build (HumanML3D layout) whose test clips the Real motion tab offers
