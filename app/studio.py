@@ -175,7 +175,7 @@ class Studio:
 
     # ------------------------------------------------------------ generation
     def sample_locked(self, steps: int, progress: StageProgress, run: Callable):
-        """run(report) under the model lock -> (its value, {"wait_s", "sample_s"})."""
+        """run(report) under the model lock, on the model thread -> (its value, {"wait_s", "sample_s"})."""
         t0 = time.perf_counter()
         if self._model_lock.locked():
             progress("waiting for the model", 0, steps)
