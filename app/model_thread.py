@@ -24,15 +24,13 @@ _owners = 0
 _count_before = 0
 
 
-def _use_threads(n: int) -> None:
-    torch.set_num_threads(n)
-    torch.get_num_threads()     # torch takes a thread's count from the process-wide one at its first use
-
-
 class ModelThread:
     def __init__(self):
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="salad-model")
         self._thread: threading.Thread = self._pool.submit(threading.current_thread).result()
+        # torch gives a thread its count from the process-wide one at its first use: fix it now,
+        # before own_torch lowers that one (load_pipeline(threads=...) on this thread sets it again)
+        self.run(torch.get_num_threads)
         self._owns = False
 
     def run(self, fn: Callable[..., T], *args, **kwargs) -> T:
@@ -53,8 +51,7 @@ class ModelThread:
         with _owners_lock:
             if _owners == 0:
                 _count_before = torch.get_num_threads()
-            self.run(_use_threads, _count_before)
-            torch.set_num_threads(1)             # after the model thread's: the default for threads to come
+                torch.set_num_threads(1)
             _owners += 1
         self._owns = True
 

@@ -72,13 +72,15 @@ def create_app(settings: Settings, pipe=None) -> StudioApp:
         from .studio import Studio
         from .ui.layout import build_error_page, build_studio
 
-        error = None
-        if pipe is None:
+        error, loaded_here = None, pipe is None
+        if loaded_here:
             pipe, error = model_thread.run(_load, settings)
         if pipe is None:
             model_thread.close()
             return StudioApp(build_error_page(error), workspace, None, error)
-        model_thread.own_torch()
+        if loaded_here:
+            # a pipeline loaded by another thread has its team there already; the caller keeps its threads
+            model_thread.own_torch()
         studio = Studio(pipe, workspace, settings.control_examples, sampler=settings.sampler,
                         model_thread=model_thread)
         demo = build_studio(studio, settings)
