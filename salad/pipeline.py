@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 import os
-from contextlib import nullcontext
+from contextlib import ExitStack, nullcontext
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
@@ -28,7 +28,7 @@ from .diffusion.schedule import CONSISTENCY_GRID, SAMPLERS, DiffusionConfig, Noi
 from .editing.build import build_edit, step_follower
 from .editing.real import edit_real
 from .editing.spec import DEFAULT_SELF_INJECT, EditResult, EditSpec
-from .editing.store import AttentionStore
+from .editing.store import AttentionStore, RowAddressed
 from .config import from_dict
 from .models.denoiser import Denoiser
 from .models.io import load_consistency_student, load_denoiser, load_vae, vae_latent_checksums
@@ -303,12 +303,20 @@ class Pipeline:
         def fn(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
             return run(x, t, slice(None), rows_mask)
 
-        def conditional(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-            return run(x, t, slice(x.shape[0], None), frame_mask)
+        # Unguided steps need the prompts' rows alone. An attention controller (an edit, the explorer's
+        # store) addresses rows of the full [unconditional, conditional] layout, so it is told that the
+        # unconditional rows are missing, or, where it reads them, the steps keep every row.
+        controllers = list({id(a.controller): a.controller for a in self.denoiser.attentions()
+                            if a.controller is not None}.values())
+        uncond = text.tokens.shape[0] // 2
 
-        # Unguided steps need the prompts' rows alone, unless an attention controller (an edit, the
-        # explorer's store) is attached: it indexes rows in the full [unconditional, conditional] layout.
-        if all(a.controller is None for a in self.denoiser.attentions()):
+        def conditional(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            with ExitStack() as stack:
+                for c in controllers:
+                    stack.enter_context(c.leading_rows_dropped(x.shape[0]))
+                return run(x, t, slice(x.shape[0], None), frame_mask)
+
+        if all(isinstance(c, RowAddressed) and c.lowest_row() >= uncond for c in controllers):
             fn.conditional = conditional
         return fn
 

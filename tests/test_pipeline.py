@@ -142,7 +142,9 @@ def test_generate_batch_with_mixed_lengths(tiny_model):
         pipe.generate_batch(["a person walks"], [30])
 
 
-def test_unguided_steps_skip_the_unconditional_rows_unless_a_controller_watches(tiny_model):
+def test_unguided_steps_skip_the_unconditional_rows_with_or_without_controllers(tiny_model):
+    from salad.editing.store import AttentionStore
+
     pipe = load_pipeline(tiny_model)
     pipe.set_foot_refine(0)        # its line search would magnify the last digits the two attention paths differ in
     rows = []
@@ -153,16 +155,39 @@ def test_unguided_steps_skip_the_unconditional_rows_unless_a_controller_watches(
         assert rows == [2] * 7 + [1] * 3          # t = 299, 199, 99 are below the 0.3 cutoff
         rows.clear()
         watched = pipe.generate("a person walks forward", return_attention=True, **walk)
-        assert rows == [2] * 10                   # the attention store reads the full layout
+        assert rows == [2] * 7 + [1] * 3          # the store is told where the prompt's row went
+        rows.clear()
+        edit = dict(mode="swap", target_prompt="a person runs forward", **walk)
+        edited = pipe.edit("a person walks forward", **edit)
+        assert rows == [4] * 7 + [2] * 3          # source + target, their CFG rows above the cutoff
+        rows.clear()
+        # a controller that reads an unconditional row keeps every row on every step
+        text = pipe.sampler_text(["a person walks forward"], "ddim")
+        fn = pipe.model_fn(text, auto=False)
+        with pipe.denoiser.controlled(AttentionStore(text, rows=slice(0, 2), frames=32)):
+            assert not hasattr(pipe.model_fn(text, auto=False), "conditional")
+        assert hasattr(fn, "conditional")
     finally:
         hook.remove()
-    assert watched.attention is not None
+    assert watched.attention is not None and watched.attention.steps == 10
     np.testing.assert_allclose(plain.joints, watched.joints, atol=1e-3)
+    # the same edit with every row on every step: the same motions and maps
+    shortcut = pipe.model_fn
+
+    def every_row(*args, **kwargs):
+        fn = shortcut(*args, **kwargs)
+        fn.__dict__.pop("conditional", None)
+        return fn
+    pipe.model_fn = every_row
+    reference = pipe.edit("a person walks forward", **edit)
+    for got, want in ((edited.source, reference.source), (edited.edited, reference.edited)):
+        np.testing.assert_allclose(got.joints, want.joints, atol=1e-3)
+        np.testing.assert_allclose(got.attention.aggregate(), want.attention.aggregate(), atol=1e-4)
 
 
 def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tiny_model, cli):
     pipe = load_pipeline(tiny_model)
-    pipe.set_foot_refine(0)        # an edit's source is sampled on the watched attention path (see above)
+    pipe.set_foot_refine(0)        # the edit's branches and the plain source differ in their last digits
     assert (pipe.ddim_eta, pipe.cfg_rescale, pipe.cfg_cutoff) == (1.0, 0.7, 0.3)   # the defaults the model card measures
     walk = dict(seconds=1.6, seed=4, steps=6, foot_lock=False)
     a, b = pipe.generate("a person walks forward", **walk), pipe.generate("a person walks forward", **walk)

@@ -366,6 +366,54 @@ def test_class_balance_draws_rare_actions_as_configured(tiny_model, tiny_dataset
     assert abs(share - expected) < 0.05, (share, expected)
 
 
+def test_an_anchor_holds_common_actions_while_rare_ones_learn_from_the_data(tiny_model, tiny_dataset, tmp_path):
+    from salad.config import ConfigError
+    from salad.training.denoiser_task import DenoiserTask, DenoiserTraining
+
+    root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)         # 2 kicks, 6 walks in train
+
+    def task_for(out, anchor="", max_clips=2):
+        cfg = _balance_config(root, tiny_model, tmp_path / out, 0.0)
+        cfg.anchor, cfg.anchor_max_clips = anchor, max_clips
+        cfg.optim.max_steps, cfg.optim.lr = 30, 3e-3
+        return DenoiserTask(cfg, show_progress=False)
+
+    anchored = task_for("anchored", str(tiny_model / "denoiser"))
+    drawn = []
+    bank_batch = anchored.text.batch
+    anchored.text.batch = lambda captions, multiple=1: (drawn.extend(captions), bank_batch(captions, multiple))[1]
+    batch = anchored.batch(np.random.default_rng(1))
+    assert batch["learn"].tolist() == [c == "a person kicks" for c in drawn]
+    # from the anchor's own weights, without dropout, the held rows are already at their target
+    anchored.load_weights(anchored.model, tiny_model / "denoiser")
+    anchored.model.eval()
+    batch["learn"][:] = False
+    loss, logs = anchored.loss(anchored.model, batch)
+    assert float(loss.detach()) < 1e-8 and logs["learn"] == 0.0
+    batch["learn"][:] = True
+    assert float(anchored.loss(anchored.model, batch)[0].detach()) > 1e-3     # the data's target is not the anchor's
+
+    # trained on from the anchor's weights, the walks stay near the anchor's; without it they drift
+    probe = anchored.batch(np.random.default_rng(7))
+    walks = ~probe.pop("learn")
+    assert walks.any()
+    with torch.no_grad():
+        _, _, start = DenoiserTraining(anchored.anchor, anchored.schedule)(probe)
+    drift = {}
+    for name, task in (("anchored", anchored), ("free", task_for("free"))):
+        trainer = Trainer(task, task.cfg.optim, task.cfg.run)
+        trainer.init_weights(tiny_model / "denoiser")
+        trainer.fit()
+        with torch.no_grad():
+            _, _, x0 = trainer.model.eval()(probe)
+        drift[name] = float((x0 - start)[walks].pow(2).mean())
+    assert drift["anchored"] < 0.5 * drift["free"], drift
+
+    for clips in (1, 6):                                            # every class rare / none rare
+        with pytest.raises(ConfigError, match="anchor_max_clips"):
+            task_for(f"bad{clips}", str(tiny_model / "denoiser"), clips)
+
+
 @pytest.mark.parametrize("balance", [1.0, 0.0])
 def test_vae_windows_follow_class_balance_and_length(tiny_dataset, tmp_path, balance):
     root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)         # 2 kicks, 6 walks in train

@@ -12,6 +12,7 @@ injects the source's self-attention maps early on.
 """
 from __future__ import annotations
 
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -20,7 +21,7 @@ from ..models.attention import CROSS, AttentionCall
 from ..motion import skeleton as sk
 from .align import TokenAlignment
 from .spec import DEFAULT_SELF_INJECT, DEFAULT_TAU
-from .store import StepCounter
+from .store import RowAddressed, StepCounter
 
 
 @dataclass
@@ -161,7 +162,7 @@ class HoldParts:
 # ---------------------------------------------------------------- the controller
 
 
-class AttentionEdit:
+class AttentionEdit(RowAddressed):
     """Algorithm 1: the target branch's cross-attention becomes Edit(M_source, M_target, t),
     and its temporal and skeletal self-attention follow the source for the first
     `self_inject` share of the steps. Values always come from the target branch's own
@@ -184,7 +185,7 @@ class AttentionEdit:
             probs = self._cross(call)
         elif self.counter.fraction < self.self_inject:
             per = call.parts if call.kind == "temporal" else call.frames
-            src, tgt = _expand(self.rows.source, per), _expand(self.rows.target, per)
+            src, tgt = _expand(self.at(self.rows.source), per), _expand(self.at(self.rows.target), per)
             injected = probs[src]
             for t in self.transforms:
                 if hasattr(t, "self_attention"):
@@ -198,10 +199,23 @@ class AttentionEdit:
     def _cross(self, call: AttentionCall) -> torch.Tensor:
         N, H, Q, L = call.probs.shape
         grid = call.probs.view(N, H, call.frames, call.parts, L)
-        src, tgt = grid[self.rows.source], grid[self.rows.target]
+        src, tgt = grid[self.at(self.rows.source)], grid[self.at(self.rows.target)]
         edited = self.rule(src, tgt, self.counter.fraction)
         for t in self.transforms:
             edited = t(edited)
         out = call.probs.clone()
-        out[self.rows.target] = edited.reshape(-1, H, Q, L).to(out.dtype)
+        out[self.at(self.rows.target)] = edited.reshape(-1, H, Q, L).to(out.dtype)
         return out
+
+    def lowest_row(self) -> int:
+        return min(self.rows.source.start, self.rows.target.start,
+                   *(o.lowest_row() for o in self.observers if isinstance(o, RowAddressed)))
+
+    @contextmanager
+    def leading_rows_dropped(self, n: int):
+        with ExitStack() as stack:
+            stack.enter_context(super().leading_rows_dropped(n))
+            for o in self.observers:
+                if isinstance(o, RowAddressed):
+                    stack.enter_context(o.leading_rows_dropped(n))
+            yield

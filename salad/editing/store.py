@@ -8,6 +8,7 @@ Afterwards any layer subset and step range can be aggregated without re-running.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,7 +83,33 @@ class StepCounter:
         return max(self.step, 0) / max(self.total, 1)
 
 
-class AttentionStore:
+class RowAddressed:
+    """A controller that addresses rows of the full batched forward [unconditional..., conditional...].
+    Steps without guidance need the conditional rows alone (Pipeline.model_fn): while they run,
+    inside leading_rows_dropped(n), every row it addresses sits n places lower."""
+
+    _dropped = 0
+
+    def lowest_row(self) -> int:
+        raise NotImplementedError
+
+    def at(self, rows: slice) -> slice:
+        """Where `rows` of the full layout are in the forward now running."""
+        return slice(rows.start - self._dropped, rows.stop - self._dropped)
+
+    @contextmanager
+    def leading_rows_dropped(self, n: int):
+        if n > self.lowest_row():
+            raise ValueError(f"{type(self).__name__} reads row {self.lowest_row()}, which a forward without the "
+                             f"first {n} rows lacks")
+        self._dropped = n
+        try:
+            yield
+        finally:
+            self._dropped = 0
+
+
+class AttentionStore(RowAddressed):
     """A controller that observes (and never changes) cross-attention maps.
 
     rows: which batch rows (of the batched CFG forward) to keep, e.g. the conditional
@@ -111,10 +138,13 @@ class AttentionStore:
             return call.probs
         if self.step_range is not None and not self.step_range[0] <= self.counter.step < self.step_range[1]:
             return call.probs
-        p = call.probs[self.rows].float().mean(dim=1)          # (b, T*J, L), head mean
+        p = call.probs[self.at(self.rows)].float().mean(dim=1)     # (b, T*J, L), head mean
         b, q, L = p.shape
         self._current[call.layer] = p.reshape(b, call.frames, call.parts, L).to(torch.float16)
         return call.probs
+
+    def lowest_row(self) -> int:
+        return self.rows.start
 
     def _flush(self) -> None:
         if self._current:

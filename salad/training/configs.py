@@ -81,6 +81,12 @@ class DenoiserTrainConfig:
     # Min-SNR-gamma loss weighting (Hang et al. 2023): each timestep's loss rescaled to the clean sample's and
     # capped at gamma; 0 = off (every timestep alike, as the shipped denoiser trained)
     min_snr_gamma: float = 0.0
+    # Fine-tuning that teaches the rare actions and keeps the rest: a denoiser checkpoint directory whose
+    # predictions become the target of every row of a content class with more than anchor_max_clips training
+    # clips (those rows learn to predict what the anchor does at the same noisy latent, timestep and caption);
+    # rows of the rarer classes learn from the data as usual. "" = off (every row learns from the data)
+    anchor: str = ""
+    anchor_max_clips: int = 4
 
 
 @dataclass

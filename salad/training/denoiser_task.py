@@ -59,16 +59,24 @@ class DenoiserTraining(nn.Module):
         kind = self.schedule.config.prediction_type
         return capped / (snr + 1.0) if kind == "v_prediction" else capped / snr if kind == "epsilon" else capped
 
-    def forward(self, batch: dict, weighted: bool = True):
+    def forward(self, batch: dict, weighted: bool = True, anchor: Denoiser | None = None):
         """(loss, logs, the clean-latent estimate); weighted=False leaves out the min-SNR weights, so
-        losses of runs with and without them compare."""
+        losses of runs with and without them compare. With an anchor, the rows not marked in
+        batch["learn"] are held to the anchor's prediction instead of the data's target."""
         z0 = batch["latents"]
         t = batch["timesteps"]
         noise = batch["noise"]
         zt = self.schedule.add_noise(z0, noise, t)
-        pred = self.denoiser(zt, t, batch["text"], batch["text_mask"], batch["frame_mask"],
-                             pooled_text=batch["pooled"], auto_length=batch["auto"])
+        inputs = (zt, t, batch["text"], batch["text_mask"], batch["frame_mask"])
+        pred = self.denoiser(*inputs, pooled_text=batch["pooled"], auto_length=batch["auto"])
         target = self.schedule.target(z0, noise, t)
+        logs = {}
+        if anchor is not None and "learn" in batch:
+            learn = batch["learn"]
+            with torch.no_grad():
+                held = anchor(*inputs, pooled_text=batch["pooled"], auto_length=batch["auto"])
+            target = torch.where(learn[:, None, None, None], target.float(), held.float())
+            logs["learn"] = float(learn.float().mean())
         err = F.mse_loss(pred.float(), target.float(), reduction="none").mean(dim=(2, 3))  # (B, T)
         if self.min_snr_gamma > 0 and weighted:
             err = err * self.snr_weights(t)[:, None]
@@ -78,7 +86,7 @@ class DenoiserTraining(nn.Module):
         else:
             loss = err.mean()
         x0, _ = self.schedule.to_x0_eps(zt.float(), pred.float(), t)
-        return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}, x0
+        return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean()), **logs}, x0
 
 
 class DenoiserTask:
@@ -132,10 +140,26 @@ class DenoiserTask:
         if not cfg.min_snr_gamma >= 0:
             raise ConfigError(f"min_snr_gamma must be >= 0 (0 = off), got {cfg.min_snr_gamma}")
         self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule, cfg.min_snr_gamma)
+        self.anchor, self._learn = self._load_anchor(cfg) if cfg.anchor else (None, None)
         if cfg.contact_loss < 0:
             raise ConfigError(f"contact_loss must be >= 0, got {cfg.contact_loss}")
         if not cfg.posterior_noise >= 0:
             raise ConfigError(f"posterior_noise must be >= 0, got {cfg.posterior_noise}")
+
+    def _load_anchor(self, cfg: DenoiserTrainConfig) -> tuple[Denoiser, np.ndarray]:
+        """The frozen anchor (cfg.anchor) and, per training motion, whether it learns from the data
+        (its content class has at most anchor_max_clips clips) rather than from the anchor."""
+        if self.content is None:
+            self.content = dataset_content(self.dataset)
+        names, cls, counts = np.unique(self.content, return_inverse=True, return_counts=True)
+        rare = counts <= cfg.anchor_max_clips
+        if rare.all() or not rare.any():
+            raise ConfigError(f"anchor_max_clips = {cfg.anchor_max_clips} leaves "
+                              f"{'no' if rare.all() else 'every'} content class held to the anchor "
+                              f"(clips per class: {min(counts)}-{max(counts)}); choose a count between")
+        anchor = Denoiser(cfg.model)
+        self._load_checked(anchor, Path(cfg.anchor))
+        return anchor.eval().requires_grad_(False), rare[cls]
 
     def _from_bundle(self, cfg: DenoiserTrainConfig) -> None:
         """Motions, latents and text features from a latent bundle (salad data bundle) instead
@@ -193,8 +217,8 @@ class DenoiserTask:
             idx = self._by_length[start + rng.integers(0, span, size=B)]
         else:
             # the window is centred on a motion drawn by weight, and drawn from by weight
-            anchor = int(rng.choice(len(w), p=w[self._by_length]))
-            start = min(max(anchor - span // 2, 0), len(self._by_length) - span)
+            centre = int(rng.choice(len(w), p=w[self._by_length]))
+            start = min(max(centre - span // 2, 0), len(self._by_length) - span)
             window = self._by_length[start:start + span]
             idx = window[rng.choice(span, size=B, p=w[window] / w[window].sum())]
         # Every motion is encoded followed by padding with activation 0 (the way the VAE saw
@@ -224,6 +248,8 @@ class DenoiserTask:
             # the real motions, normalised, on the rows' frames (what the decoded estimate is held to)
             feats, act = self._canvas([self.normalizer.normalize(c[:T]) for c in crops])
             extra = {"features": feats[:, :T], "valid": act[:, :T] > 0.5}
+        if self._learn is not None:
+            extra["learn"] = torch.from_numpy(self._learn[idx])
         return {**extra, "latents": latents, "frame_mask": frame_mask, "text": text, "text_mask": text_mask,
                 "pooled": pooled, "auto": torch.full((B,), auto),
                 "timesteps": torch.randint(0, self.schedule.config.train_steps, (B,), generator=g),
@@ -294,7 +320,9 @@ class DenoiserTask:
         return batches
 
     def loss(self, model: nn.Module, batch: dict):
-        loss, logs, x0 = model(batch)
+        if self.anchor is not None:
+            self.anchor.to(batch["latents"].device)
+        loss, logs, x0 = model(batch, anchor=self.anchor)
         if self.cfg.contact_loss > 0:
             feet = self.foot_error(x0, batch)
             logs["foot"] = float(feet.detach())
@@ -311,6 +339,9 @@ class DenoiserTask:
         return to_dict(self.cfg)
 
     def load_weights(self, model: nn.Module, path: Path, continuing: bool = False) -> dict:
+        return self._load_checked(model.denoiser, path)
+
+    def _load_checked(self, into: Denoiser, path: Path) -> dict:
         denoiser, doc = load_denoiser(path)
         # Same-shaped weights from another latent space or text encoder would load fine and
         # train into nonsense, so the partners are checked by identity, not by shape.
@@ -323,7 +354,7 @@ class DenoiserTask:
         if theirs.get("name") != mine.get("name"):
             raise CheckpointError(f"{path} was trained with the {theirs.get('name')} text encoder, this config "
                                   f"uses {mine.get('name')}")
-        load_state_strict(model.denoiser, denoiser.state_dict(), str(path))
+        load_state_strict(into, denoiser.state_dict(), str(path))
         return doc.get("meta", {})
 
     def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
