@@ -151,7 +151,7 @@ class DenoiserTask:
         (its content class has at most anchor_max_clips clips) rather than from the anchor."""
         if self.content is None:
             self.content = dataset_content(self.dataset)
-        names, cls, counts = np.unique(self.content, return_inverse=True, return_counts=True)
+        _, cls, counts = np.unique(self.content, return_inverse=True, return_counts=True)
         rare = counts <= cfg.anchor_max_clips
         if rare.all() or not rare.any():
             raise ConfigError(f"anchor_max_clips = {cfg.anchor_max_clips} leaves "
