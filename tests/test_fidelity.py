@@ -167,6 +167,15 @@ def test_a_fidelity_run_with_the_length_prior_generates_at_the_priors_length(tmp
     bands = [pipe.auto_length_band(s["prompt"]) for s in row["samples"]]
     assert all(lo <= s["frames"] <= hi for s, (lo, hi) in zip(row["samples"], bands))
     assert res["settings"]["length_band"] > 1 and "held within" in report_markdown(res)
+    # other seeds: the same prompts, each motion as a plain generation with that seed makes it
+    res = evaluate_fidelity(pipe, root, seeds=2, steps=2, sampler="consistency", classes=["walk"], first_seed=5)
+    (row,) = res["rows"]
+    assert [s["seed"] for s in row["samples"]] == [5, 6] * len(HELD_OUT["walk"])
+    again = pipe.generate(row["samples"][1]["prompt"], seed=6, steps=2, sampler="consistency", foot_lock=False)
+    assert again.frames == row["samples"][1]["frames"]
+    assert res["settings"]["first_seed"] == 5 and "2 seeds (5-6)" in report_markdown(res)
+    with pytest.raises(ValueError, match="first_seed must be a non-negative integer"):
+        evaluate_fidelity(pipe, root, seeds=1, first_seed=-1)
 
 
 def _stored_bye_run(side: str) -> dict:

@@ -217,6 +217,8 @@ def add_eval_fidelity(sub) -> None:
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--classes", default=None, help="comma list of classes (default: all), e.g. walk,kick")
     p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="the seeds run from this one (default 0); other seeds show how much the table moves by chance")
     p.add_argument("--prompt-set", choices=tuple(PROMPT_SETS), default="a",
                    help="which held-out paraphrase set prompts each class (salad.eval.paraphrases): a (default), or "
                         "b, written later to check that template changes generalise beyond set a's wording")
@@ -255,7 +257,7 @@ def cmd_eval_fidelity(a) -> int:
     bar, update = progress_bar("generating")
     results = evaluate_fidelity(pipe, a.data, seeds=a.seeds, steps=a.steps, cfg=a.cfg, sampler=a.sampler,
                                 classes=classes, split=a.split, classifier=clf, progress=update, length=a.length,
-                                prompt_set=a.prompt_set)
+                                prompt_set=a.prompt_set, first_seed=a.first_seed)
     bar.close()
     _write_fidelity(results, Path(a.out))
     return 0

@@ -216,15 +216,18 @@ def reference_clips(data_root: str | Path, cls: FidelityClass, labels: dict, spl
 def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | None = None, cfg: float = 7.5,
                       sampler: str = "ddim", classes=None, split: str = "test", classifier=None,
                       progress: Callable[[int, int], None] | None = None, length: str = "auto",
-                      prompt_set: str = "a") -> dict:
+                      prompt_set: str = "a", first_seed: int = 0) -> dict:
     """Per-class checks of generated against real motion; with a `classifier` (salad.eval.classifiers), also
     the share of generated motions it puts in the prompt's action (and style, for styled classes).
-    length: "auto", "model" or "prior" (Pipeline.frames_for)."""
+    length: "auto", "model" or "prior" (Pipeline.frames_for). The seeds are first_seed ... first_seed +
+    seeds - 1: other seeds than the default 0, 1, 2 show how far the table moves by chance alone."""
     if length not in ("auto", "model", "prior"):
         raise ValueError(f"length must be 'auto', 'model' or 'prior', got {length!r}")
     from ..pipeline import AUTO_LENGTH_BAND
     if not isinstance(seeds, int) or seeds < 1:
         raise ValueError(f"seeds must be a positive integer, got {seeds!r}")
+    if not isinstance(first_seed, int) or first_seed < 0:
+        raise ValueError(f"first_seed must be a non-negative integer, got {first_seed!r}")
     steps, cfg, sampler, _ = pipe.check_sampling(steps, cfg, sampler)     # the report names the steps used
     labels = read_labels(data_root)
     present = {lab.content for lab in labels.values()}
@@ -240,7 +243,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | 
             continue
         raw, clean, samples, features = [], [], [], []
         for prompt in cls.prompts:
-            for seed in range(seeds):
+            for seed in range(first_seed, first_seed + seeds):
                 m = pipe.generate(prompt, seconds=length, seed=seed, steps=steps, cfg=cfg, sampler=sampler,
                                   foot_lock=False)
                 locked, _ = clean_motion(m.joints, m.features)
@@ -261,7 +264,7 @@ def evaluate_fidelity(pipe, data_root: str | Path, seeds: int = 3, steps: int | 
                 sample["classified_as"] = content
         rows.append(row)
     return {"rows": rows, "rules": RULES, "settings": {
-        "seeds": seeds, "steps": steps, "cfg": cfg, "sampler": sampler, **pipe.sampler_settings(sampler),
+        "seeds": seeds, "first_seed": first_seed, "steps": steps, "cfg": cfg, "sampler": sampler, **pipe.sampler_settings(sampler),
         "split": split, "max_seconds": pipe.max_seconds, "model": shown_path(pipe.source),
         "length": length, "length_band": AUTO_LENGTH_BAND if length == "auto" else None, "prompt_set": prompt_set, "seconds": round(time.perf_counter() - started, 1)},
         "summary": summary(rows, classifier)}
@@ -357,10 +360,15 @@ def describe_length(settings: dict) -> str:
     return "auto length (the model's own)" if length == "model" else "auto length"
 
 
+def describe_seeds(s: dict) -> str:
+    first = s.get("first_seed", 0)
+    return f"{s['seeds']} seeds" if not first else f"{s['seeds']} seeds ({first}-{first + s['seeds'] - 1})"
+
+
 def report_markdown(results: dict) -> str:
     s = results["settings"]
     lines = ["# Fidelity per class", "",
-             f"Model `{s['model']}`; held-out paraphrases (set {s.get('prompt_set', 'a')}) × {s['seeds']} seeds, "
+             f"Model `{s['model']}`; held-out paraphrases (set {s.get('prompt_set', 'a')}) × {describe_seeds(s)}, "
              f"{describe_length(s)}, {s['sampler']} "
              f"{s['steps']} steps{describe_settings(s)}, CFG {s['cfg']}; reference: real clips of the class in the prompt's style "
              f"({UNSTYLED} where it names none) from the {s['split']} split, widened to all splits, then all "
