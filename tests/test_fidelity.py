@@ -226,4 +226,6 @@ def test_a_stored_run_is_judged_again_from_its_measures(tmp_path, capsys):
     (tmp_path / "broken" / "results.json").write_text("{}")
     assert main(["eval-fidelity", "--rejudge", str(tmp_path / "broken")]) == 2
     assert "not a readable eval-fidelity result" in capsys.readouterr().err
+    assert main(["eval-fidelity", "--data", str(root), "--out", str(tmp_path / "x"), "--first-seed", "-2"]) == 2
+    assert "--first-seed at least 0" in capsys.readouterr().err
     assert main(["eval-fidelity", "--out", str(tmp_path / "x")]) == 2           # nothing to judge, no data

@@ -247,6 +247,8 @@ def cmd_eval_fidelity(a) -> int:
     device = device_of(a)
     classes = [c.strip() for c in a.classes.split(",") if c.strip()] if a.classes else None
     fidelity_classes(classes, a.prompt_set)                      # unknown names fail before loading anything
+    if a.seeds < 1 or a.first_seed < 0:
+        raise ValueError(f"--seeds must be at least 1 and --first-seed at least 0, got {a.seeds} and {a.first_seed}")
     read_labels(a.data)
     clf = None
     if a.classifier != "none":
