@@ -124,7 +124,7 @@ class DenoiserTask:
                                          normalizer=self.normalizer)
             self.lengths = np.array([len(it.features) for it in self.dataset.items], dtype=np.int64)
             self.captions = [list(it.captions) for it in self.dataset.items]
-            self.content = dataset_content(self.dataset) if d.balance != 1.0 else None
+            self.content = dataset_content(self.dataset) if d.balance != 1.0 or cfg.anchor else None
             self.text_encoder = load_text_encoder(cfg.text_encoder)
             self.text_spec = self.text_encoder.spec()
             if cfg.model.text_dim != self.text_encoder.dim:
@@ -150,7 +150,7 @@ class DenoiserTask:
         """The frozen anchor (cfg.anchor) and, per training motion, whether it learns from the data
         (its content class has at most anchor_max_clips clips) rather than from the anchor."""
         if self.content is None:
-            self.content = dataset_content(self.dataset)
+            raise ConfigError("anchor holds actions by their content class, and this data has no content labels")
         _, cls, counts = np.unique(self.content, return_inverse=True, return_counts=True)
         rare = counts <= cfg.anchor_max_clips
         if rare.all() or not rare.any():
