@@ -27,7 +27,7 @@ class StudioApp:
             self.demo.close()
         finally:
             if self.studio is not None:
-                self.studio.model_thread.close()
+                self.studio.close()
             self.workspace.close()
 
 

@@ -143,7 +143,8 @@ class Studio:
     def __init__(self, pipe, workspace: Workspace, control_examples: Path | None = None, sampler: str = "auto",
                  model_thread: ModelThread | None = None):
         self.pipe = pipe
-        # every model call runs on this thread (app.model_thread says why); best the one that loaded `pipe`
+        # every model call runs on this thread (app.model_thread says why) until close(); at full speed only
+        # if it is the thread that loaded `pipe` (a thread made here samples about half as fast)
         self.model_thread = model_thread or ModelThread()
         self.workspace = workspace
         self.control_examples = control_examples      # a folder of control .npy files, or None
@@ -164,6 +165,10 @@ class Studio:
         # Sampling swaps an attention controller into the shared denoiser, so only one
         # sampling runs at a time; rendering (its own lock) overlaps with the next sampling.
         self._model_lock = threading.Lock()
+
+    def close(self) -> None:
+        """Stop the model thread; the studio takes no more model calls."""
+        self.model_thread.close()
 
     # ------------------------------------------------------------ sessions
     def session(self, current: Session | None, session_hash: str) -> Session:

@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -446,6 +447,18 @@ def test_workspace_sessions_are_private_pruned_and_removed(tmp_path):
     assert not ws.root.exists()
 
 
+def test_studio_close_stops_its_model_thread(pipe, tmp_path):
+    ws = Workspace(tmp_path)
+    try:
+        studio = Studio(pipe, ws)
+        assert studio.model_thread.run(threading.current_thread) is not threading.current_thread()
+        studio.close()
+        with pytest.raises(RuntimeError):
+            studio.model_thread.run(lambda: None)
+    finally:
+        ws.close()
+
+
 def test_sessions_keep_recent_results_and_cache_renders(pipe, tmp_path):
     ws = Workspace(tmp_path)
     studio = Studio(pipe, ws)
@@ -473,6 +486,7 @@ def test_sessions_keep_recent_results_and_cache_renders(pipe, tmp_path):
         session.close()
         assert not session.folder.exists()
     finally:
+        studio.close()
         ws.close()
 
 
@@ -526,6 +540,7 @@ def test_the_preview_shows_the_motion_before_its_feet_are_refined_and_the_rest_a
         assert guided.motion.info["control_mean_error_m"] == pytest.approx(
             control_errors(guided.motion.joints, signal).mean())
     finally:
+        studio.close()
         ws.close()
 
 
@@ -566,6 +581,7 @@ def test_the_preview_comes_first_and_the_full_video_is_rendered_once(pipe, tmp_p
         assert again is not result and studio.shown_video(again) == again.files["preview"] and len(calls) == 3
         assert again.peek(("skeleton",)) is None, "the 3D figure is built on request"
     finally:
+        studio.close()
         ws.close()
 
 

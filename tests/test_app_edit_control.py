@@ -415,6 +415,7 @@ def test_sessions_reuse_identical_requests_per_kind(pipe, tmp_path):
         assert first.folder.exists() and not other.folder.exists(), "the oldest of the kept results goes"
         assert isinstance(Session("k", tmp_path / "s").latest("control"), type(None))
     finally:
+        studio.close()
         ws.close()
 
 
@@ -456,6 +457,7 @@ def test_edits_and_guided_motions_preview_first_and_render_in_full_once(pipe, tm
         assert studio.control(session, creq, signal) is guided and studio.full_video(guided) == full
         assert len(calls) == 2
     finally:
+        studio.close()
         ws.close()
 
 
