@@ -58,6 +58,13 @@ ACTIVATION_THRESHOLD = 0.5
 # teacher): within +-35% with bands of 1.1, 1.25, 1.5, 2 and none (the prior alone): 0.91, 0.91, 0.90, 0.86
 # and 0.86 (the sample's prior with 1.25: 0.82); action medians 14, 14, 14, 11 and 13 of 17 (sample: 13).
 AUTO_LENGTH_BAND = 1.25
+# An auto length is laid down early: after 30% of the steps the clean estimate's activation ends on the same
+# side of the band as the finished motion's (session 40, teacher, DDIM-50, one validation caption per
+# action-style group and the studio bench's three prompts, 2 seeds: 162 of 164 at step 15, 159 at step 10, all
+# from step 20; the two at step 15 ended on the band's lower edge, so held there they keep their length). So a
+# sampling whose estimate has left the band by then stops and samples again at the edge instead of finishing
+# a motion that would be thrown away (38 of the 164). The finished motion is still checked.
+LENGTH_SETTLED = 0.3
 # Generated latents can go through the VAE once more before the last decode: decoded, encoded to the
 # posterior mean, decoded again (set_projections). It pulls a motion towards where real ones lie and
 # smooths it; it was the default from session 27 (a bow's jerk 11.0 -> 6.0 m/s³, real 4.1; the plain walk's
@@ -95,6 +102,14 @@ CFG_RESCALE = 0.7
 # alone): the action is settled by then, and guidance there only made the feet slide.
 CFG_CUTOFF = 0.3
 
+
+
+class _LengthLeftBand(Exception):
+    """A length watch's stop: sample again at `frames`, the band's edge."""
+
+    def __init__(self, frames: int):
+        super().__init__(frames)
+        self.frames = frames
 
 
 class Pipeline:
@@ -236,6 +251,27 @@ class Pipeline:
             return None
         return min(max(frames, band[0]), band[1])
 
+    def _length_watch(self, band: tuple[int, int] | None, steps: int, sampler: str):
+        """A denoise watch that stops an auto-length sampling (raising _LengthLeftBand) when its first row's
+        clean estimate after LENGTH_SETTLED of the steps ends outside `band`; None where there is no band, or
+        too few steps for an early look to save any (the consistency sampler's 1-4)."""
+        check = math.ceil(steps * LENGTH_SETTLED)
+        if band is None or sampler == "consistency" or check >= steps:
+            return None
+
+        def watch(i: int, x0: torch.Tensor) -> None:
+            if i != check:
+                return
+            with torch.no_grad():
+                _, act_logits = self.vae.decode(x0[:1] / self.latent_scale)
+            if act_logits is None:
+                return
+            held = self._held_length(band, end_of_motion(torch.sigmoid(act_logits[0]).cpu().numpy()))
+            if held is not None:
+                raise _LengthLeftBand(held)
+
+        return watch
+
     def check_sampling(self, steps, cfg, sampler, batch=1) -> tuple[int, float, str, int]:
         """Checked (steps, cfg, sampler, batch); steps=None is the sampler's default
         (DEFAULT_STEPS)."""
@@ -346,13 +382,14 @@ class Pipeline:
 
     def denoise(self, text, noise: torch.Tensor, sampler: str, steps: int, cfg: float, auto: bool,
                 seed: int | list[int] = 0, frame_mask: torch.Tensor | None = None, shared_noise: bool = False,
-                on_step=None, blend=None, start: int = 0) -> torch.Tensor:
+                on_step=None, blend=None, start: int = 0, watch=None) -> torch.Tensor:
         """Clean latents from `noise` with `text` in sampler_text's layout. The consistency sampler
         and DDIM with ddim_eta > 0 draw fresh noise at each step seeded by `seed` (shared by all
         rows with shared_noise; a list gives each row its own seed, as if it were sampled alone).
         blend(x) changes the latents after each step (the consistency sampler: its clean estimates).
         start > 0 (ddim and consistency) begins that many steps down: `noise` is then a latent noised to
-        that step's timestep (SDEdit)."""
+        that step's timestep (SDEdit). watch(i, x0) sees each step's clean estimate (ddim and dpm: sample's
+        watch; the consistency sampler ignores it)."""
         if isinstance(seed, (list, tuple)):
             g = [torch.Generator().manual_seed(int(s) + 1) for s in seed]
         else:
@@ -364,7 +401,7 @@ class Pipeline:
         return sample(self.model_fn(text, auto=auto, frame_mask=frame_mask), noise, self.schedule, sampler=sampler,
                       steps=steps, cfg_scale=cfg, on_step=on_step, blend=blend, generator=g, shared_noise=shared_noise,
                       eta=self.ddim_eta if sampler == "ddim" else 0.0, cfg_rescale=self.cfg_rescale,
-                      cfg_cutoff=self.cfg_cutoff, start=start)
+                      cfg_cutoff=self.cfg_cutoff, start=start, watch=watch)
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor, frames: int | None, texts: list[str], seed: int,
@@ -473,9 +510,14 @@ class Pipeline:
         prompt = self.check_prompt(prompt)
         frames = self.frames_for(seconds, prompt)
         steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
-        motions = self._generate(prompt, frames, seed, steps, cfg, sampler, batch, return_attention, progress,
-                                 foot_lock, self.length_source(seconds), foot_refine=foot_refine)
         band = self._band_for(seconds, prompt)
+        try:
+            motions = self._generate(prompt, frames, seed, steps, cfg, sampler, batch, return_attention, progress,
+                                     foot_lock, self.length_source(seconds), foot_refine=foot_refine,
+                                     watch=self._length_watch(band, steps, sampler) if batch == 1 else None)
+        except _LengthLeftBand as left:
+            motions = self._generate(prompt, left.frames, seed, steps, cfg, sampler, batch, return_attention,
+                                     progress, foot_lock, "held", foot_refine=foot_refine)
         for b, m in enumerate(motions):
             held = self._held_length(band, m.frames)
             if held is not None:
@@ -485,8 +527,8 @@ class Pipeline:
 
     def _generate(self, prompt: str, frames: int | None, seed: int, steps: int, cfg: float, sampler: str,
                   batch: int, return_attention: bool, progress: Progress | None, foot_lock: bool, length: str,
-                  row: int | None = None, foot_refine: bool = True) -> list[Motion]:
-        """generate's sampling, on checked arguments; row: only that row of the batch's noise."""
+                  row: int | None = None, foot_refine: bool = True, watch=None) -> list[Motion]:
+        """generate's sampling, on checked arguments; row: only that row of the batch's noise; watch: denoise's."""
         canvas = frames or self.canvas_frames
         noise = self.noise(batch, canvas, seed)
         if row is not None:
@@ -496,7 +538,8 @@ class Pipeline:
         store = AttentionStore(text, rows=rows, frames=canvas) if return_attention else None
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
         with self.network(sampler).controlled(store):
-            z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, on_step=on_step)
+            z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, on_step=on_step,
+                             watch=watch)
         motions = self.decode(z, frames, [prompt] * batch, seed, foot_lock, length=length,
                               feet="refine" if foot_refine else "defer")
         if store is not None:
@@ -686,17 +729,25 @@ class Pipeline:
 
         noise = self.noise(1, canvas, seed).repeat(2, 1, 1, 1)        # the same z_T for both branches
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
-        with self.network(sampler).controlled(edit):
-            z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, shared_noise=True,
-                             on_step=on_step, blend=plan.blend)
-        source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock,
-                                     length=self.length_source(seconds), feet="refine" if foot_refine else "defer")
-        held = self._held_length(self._band_for(seconds, source_prompt), source.frames)
-        if held is not None:         # both branches again, at the source's band edge
+        band = self._band_for(seconds, source_prompt)
+
+        def again_at(held: int) -> EditResult:        # both branches again, at the source's band edge
             again = self.edit(source_prompt, seed=seed, seconds=held / FPS, steps=steps, cfg=cfg, sampler=sampler,
                               progress=progress, foot_lock=foot_lock, spec=spec, foot_refine=foot_refine)
             again.source.info["length"] = again.edited.info["length"] = "held"
             return again
+
+        try:
+            with self.network(sampler).controlled(edit):
+                z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, shared_noise=True,
+                                 on_step=on_step, blend=plan.blend, watch=self._length_watch(band, steps, sampler))
+        except _LengthLeftBand as left:
+            return again_at(left.frames)
+        source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock,
+                                     length=self.length_source(seconds), feet="refine" if foot_refine else "defer")
+        held = self._held_length(band, source.frames)
+        if held is not None:
+            return again_at(held)
         source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
         params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler=sampler)
         return EditResult(source, edited, source.attention, edited.attention, params)

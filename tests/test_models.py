@@ -243,6 +243,33 @@ def test_guidance_stops_below_the_cutoff():
         sample(model, noise, s, steps=4, cfg_cutoff=1.0)
 
 
+def test_the_watch_sees_each_steps_clean_estimate_and_can_stop_the_sampling():
+    s = NoiseSchedule()
+
+    def model(x, t):                        # unconditional rows predict 0, conditional ones 1
+        half = x.shape[0] // 2
+        return torch.cat((torch.zeros_like(x[:half]), torch.ones_like(x[half:])))
+    noise = torch.randn(2, 3, 4, generator=torch.Generator().manual_seed(0))
+    seen = []
+    plain = sample(model, noise, s, steps=10, cfg_scale=7.5, cfg_cutoff=0.3)
+    watched = sample(model, noise, s, steps=10, cfg_scale=7.5, cfg_cutoff=0.3, watch=lambda i, x0: seen.append((i, x0)))
+    assert torch.equal(plain, watched) and [i for i, _ in seen] == list(range(1, 11))
+    # by hand, the first step's: guided output 7.5 at t = 999 on the noise itself
+    sa, s1a = s._coef(torch.tensor([999, 999]), noise)
+    torch.testing.assert_close(seen[0][1], sa * noise - s1a * 7.5)
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_3(i, x0):
+        if i == 3:
+            raise Stop
+    steps = []
+    with pytest.raises(Stop):
+        sample(model, noise, s, steps=10, watch=stop_at_3, on_step=lambda i, n, x: steps.append(i))
+    assert steps == [1, 2]
+
+
 def test_unguided_steps_run_the_conditional_rows_alone_when_the_model_offers_them():
     s = NoiseSchedule()
     rows = []

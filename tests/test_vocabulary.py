@@ -1,4 +1,5 @@
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -207,16 +208,23 @@ def test_auto_length_is_the_models_own_held_within_the_priors_band(tiny_model, t
     monkeypatch.setattr(pipe.prompt_check, "length_prior", lambda prompt, k=8: 1.4)
     lo, hi = pipe.auto_length_band(prompt)
     assert (lo, hi) == (24, 36) and pipe.frames_for("prior", prompt) == 28
+    steps = 10
+    early = math.ceil(steps * sp.LENGTH_SETTLED) - 1       # steps reported before the watch stops one
+    stopped_early = 0
     for seed in range(3):
-        own = pipe.generate(prompt, seconds="model", seed=seed, steps=2)
-        auto = pipe.generate(prompt, seed=seed, steps=2)
+        own = pipe.generate(prompt, seconds="model", seed=seed, steps=steps)
+        ran = []
+        auto = pipe.generate(prompt, seed=seed, steps=steps, progress=lambda i, n: ran.append(i))
         assert lo <= auto.frames <= hi
-        if lo <= own.frames <= hi:                # kept: the very same motion
-            assert auto.info["length"] == "model" and np.array_equal(auto.joints, own.joints)
+        if auto.info["length"] == "model":        # kept: the very same motion, sampled once
+            assert lo <= own.frames <= hi and np.array_equal(auto.joints, own.joints) and len(ran) == steps
         else:                                     # sampled again at the band's edge, as a request of that length
-            assert auto.info["length"] == "held" and auto.frames == min(max(own.frames, lo), hi)
-            again = pipe.generate(prompt, seconds=auto.frames / 20, seed=seed, steps=2)
+            assert auto.info["length"] == "held" and auto.frames in (lo, hi)
+            again = pipe.generate(prompt, seconds=auto.frames / 20, seed=seed, steps=steps)
             assert np.allclose(again.joints, auto.joints, atol=1e-5)
+            # the first sampling stopped once its estimate had left the band, or ran on and ended outside it
+            assert len(ran) == early + steps or (len(ran) == 2 * steps and not lo <= own.frames <= hi)
+            stopped_early += len(ran) == early + steps
     # a band of one length holds every motion to the prior, in generate (each row of a batch) and in edits
     monkeypatch.setattr(sp, "AUTO_LENGTH_BAND", 1.0)
     frames = pipe.frames_for("prior", prompt)
@@ -225,6 +233,17 @@ def test_auto_length_is_the_models_own_held_within_the_priors_band(tiny_model, t
     edit = pipe.edit(prompt, "a person runs forward", seed=0, steps=2)
     assert edit.source.frames == edit.edited.frames == frames and edit.source.info["length"] in ("held", "model")
     assert pipe.generate(prompt, seconds=1.0, seed=0, steps=2).frames == 20      # requested lengths stay
+    # a length that has left a band of one frame count stops its sampling early, in generate and in edits
+    for seed in range(3):
+        ran = []
+        pipe.generate(prompt, seed=seed, steps=steps, progress=lambda i, n: ran.append(i))
+        stopped_early += len(ran) == early + steps
+    ran = []
+    edit = pipe.edit(prompt, "a person runs forward", seed=0, steps=steps, progress=lambda i, n: ran.append(i))
+    assert edit.source.frames == frames and len(ran) in (steps, early + steps, 2 * steps)
+    assert stopped_early > 0
+    # the consistency sampler's few steps are not watched
+    assert pipe._length_watch((frames, frames), 4, "consistency") is None and pipe._length_watch(None, 50, "ddim") is None
 
 
 def test_the_length_prior_looks_among_every_training_caption_not_only_the_sample(tiny_dataset, tmp_path):

@@ -68,7 +68,8 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
            cfg_scale: float = 7.5, on_step: Callable[[int, int, torch.Tensor], None] | None = None,
            blend: Callable[[torch.Tensor], torch.Tensor] | None = None, eta: float = 0.0, cfg_rescale: float = 0.0,
            generator: torch.Generator | list[torch.Generator] | None = None,
-           shared_noise: bool = False, cfg_cutoff: float = 0.0, start: int = 0) -> torch.Tensor:
+           shared_noise: bool = False, cfg_cutoff: float = 0.0, start: int = 0,
+           watch: Callable[[int, torch.Tensor], None] | None = None) -> torch.Tensor:
     """Denoise `noise` (B, ...) to clean latents.
 
     `model` receives 2B rows (unconditional rows first, then conditional ones) so that
@@ -81,6 +82,8 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
     (B rows -> their conditional prediction), those steps run it instead of the 2B-row forward.
     start > 0 ("ddim" only, whose steps keep no state) skips the first steps: `noise` is then a
     latent noised to schedule.sampler(sampler, steps).timesteps[start] (SDEdit).
+    watch(i, x0) sees the guided prediction's clean estimate of step i (1-based) before the step is taken;
+    an exception it raises ends the sampling (the pipeline stops a motion whose length already left its band).
     """
     if eta < 0 or (eta > 0 and sampler != "ddim"):
         raise ValueError(f"eta must be >= 0 and needs the ddim sampler, got eta={eta} with {sampler!r}")
@@ -103,6 +106,8 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
         else:
             out = model(torch.cat((x, x), dim=0), tt)
             out = cfg_combine(out.float(), cfg_scale if guided else 1.0, cfg_rescale)
+        if watch is not None:
+            watch(i + 1, schedule.to_x0_eps(x, out, tt[:x.shape[0]])[0])
         if eta > 0:
             x = sched.step(out, t, x, eta=eta, variance_noise=fresh_noise(x, generator, shared_noise)).prev_sample
         else:
