@@ -501,7 +501,8 @@ class Pipeline:
                  progress: Progress | None = None, foot_lock: bool = True, foot_refine: bool = True):
         """Text -> Motion (or a list of `batch` motions). seconds=None (or "auto") lets the model choose the
         length within a band around the training data's (a motion that ends outside it is sampled again
-        at its edge, as with seconds = that length), "model" takes the model's own, "prior" the
+        at its edge, as with seconds = that length; DDIM and DPM-Solver++ tell after LENGTH_SETTLED of their
+        steps and stop there), "model" takes the model's own, "prior" the
         training data's (frames_for); foot_lock=False returns the decoder's joints without the foot
         clean-up; foot_refine=False returns them before the planted-feet refinement, which
         refine_feet(motion) then runs (a preview first). sampler: "ddim" (the paper's), "dpm"
