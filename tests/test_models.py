@@ -224,12 +224,15 @@ def test_stochastic_ddim_is_seeded_shares_noise_across_branches_and_needs_ddim()
         sample(model, noise, s, sampler="dpm", steps=8, eta=1.0)
 
 
+def _zero_one_model(x, t):
+    """Unconditional rows predict 0, conditional ones 1."""
+    half = x.shape[0] // 2
+    return torch.cat((torch.zeros_like(x[:half]), torch.ones_like(x[half:])))
+
+
 def test_guidance_stops_below_the_cutoff():
     s = NoiseSchedule()
-
-    def model(x, t):                        # unconditional rows predict 0, conditional ones 1
-        half = x.shape[0] // 2
-        return torch.cat((torch.zeros_like(x[:half]), torch.ones_like(x[half:])))
+    model = _zero_one_model
     noise = torch.randn(2, 3, 4, generator=torch.Generator().manual_seed(0))
     got = sample(model, noise, s, steps=10, cfg_scale=7.5, cfg_cutoff=0.3)
     # by hand: guided 0 + 7.5 x (1 - 0) at t = 999 ... 399, the conditional 1 alone at 299 ... 99
@@ -245,10 +248,7 @@ def test_guidance_stops_below_the_cutoff():
 
 def test_the_watch_sees_each_steps_clean_estimate_and_can_stop_the_sampling():
     s = NoiseSchedule()
-
-    def model(x, t):                        # unconditional rows predict 0, conditional ones 1
-        half = x.shape[0] // 2
-        return torch.cat((torch.zeros_like(x[:half]), torch.ones_like(x[half:])))
+    model = _zero_one_model
     noise = torch.randn(2, 3, 4, generator=torch.Generator().manual_seed(0))
     seen = []
     plain = sample(model, noise, s, steps=10, cfg_scale=7.5, cfg_cutoff=0.3)
