@@ -512,18 +512,18 @@ class Pipeline:
         frames = self.frames_for(seconds, prompt)
         steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
         band = self._band_for(seconds, prompt)
+        run = partial(self._generate, prompt, seed=seed, steps=steps, cfg=cfg, sampler=sampler, batch=batch,
+                      return_attention=return_attention, progress=progress, foot_lock=foot_lock,
+                      foot_refine=foot_refine)
         try:
-            motions = self._generate(prompt, frames, seed, steps, cfg, sampler, batch, return_attention, progress,
-                                     foot_lock, self.length_source(seconds), foot_refine=foot_refine,
-                                     watch=self._length_watch(band, steps, sampler) if batch == 1 else None)
+            motions = run(frames, length=self.length_source(seconds),
+                          watch=self._length_watch(band, steps, sampler) if batch == 1 else None)
         except _LengthLeftBand as left:
-            motions = self._generate(prompt, left.frames, seed, steps, cfg, sampler, batch, return_attention,
-                                     progress, foot_lock, "held", foot_refine=foot_refine)
+            motions = run(left.frames, length="held")
         for b, m in enumerate(motions):
             held = self._held_length(band, m.frames)
             if held is not None:
-                motions[b] = self._generate(prompt, held, seed, steps, cfg, sampler, batch, return_attention,
-                                            progress, foot_lock, "held", row=b, foot_refine=foot_refine)[0]
+                motions[b] = run(held, length="held", row=b)[0]
         return motions[0] if batch == 1 else motions
 
     def _generate(self, prompt: str, frames: int | None, seed: int, steps: int, cfg: float, sampler: str,
