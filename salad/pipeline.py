@@ -105,11 +105,17 @@ CFG_CUTOFF = 0.3
 
 
 class _LengthLeftBand(Exception):
-    """A length watch's stop: sample again at `frames`, the band's edge."""
+    """A length watch's stop after `steps` reported steps: sample again at `frames`, the band's edge."""
 
-    def __init__(self, frames: int):
+    def __init__(self, frames: int, steps: int):
         super().__init__(frames)
-        self.frames = frames
+        self.frames, self.steps = frames, steps
+
+
+def _after(progress: Progress | None, spent: int) -> Progress | None:
+    """progress for a sampling that follows `spent` reported steps (one run again at a held length): the
+    count goes on (spent + i of spent + n) rather than starting again from zero."""
+    return None if progress is None else lambda i, n: progress(spent + i, spent + n)
 
 
 class Pipeline:
@@ -268,7 +274,7 @@ class Pipeline:
                 return
             held = self._held_length(band, end_of_motion(torch.sigmoid(act_logits[0]).cpu().numpy()))
             if held is not None:
-                raise _LengthLeftBand(held)
+                raise _LengthLeftBand(held, steps=i - 1)
 
         return watch
 
@@ -518,12 +524,15 @@ class Pipeline:
         try:
             motions = run(frames, length=self.length_source(seconds),
                           watch=self._length_watch(band, steps, sampler) if batch == 1 else None)
+            spent = steps
         except _LengthLeftBand as left:
-            motions = run(left.frames, length="held")
+            motions = run(left.frames, length="held", progress=_after(progress, left.steps))
+            spent = left.steps + steps
         for b, m in enumerate(motions):
             held = self._held_length(band, m.frames)
             if held is not None:
-                motions[b] = run(held, length="held", row=b)[0]
+                motions[b] = run(held, length="held", row=b, progress=_after(progress, spent))[0]
+                spent += steps
         return motions[0] if batch == 1 else motions
 
     def _generate(self, prompt: str, frames: int | None, seed: int, steps: int, cfg: float, sampler: str,
@@ -732,9 +741,10 @@ class Pipeline:
         on_step = (lambda i, n, x: progress(i, n)) if progress else None
         band = self._band_for(seconds, source_prompt)
 
-        def again_at(held: int) -> EditResult:        # both branches again, at the source's band edge
+        def again_at(held: int, spent: int) -> EditResult:      # both branches again, at the source's band edge
             again = self.edit(source_prompt, seed=seed, seconds=held / FPS, steps=steps, cfg=cfg, sampler=sampler,
-                              progress=progress, foot_lock=foot_lock, spec=spec, foot_refine=foot_refine)
+                              progress=_after(progress, spent), foot_lock=foot_lock, spec=spec,
+                              foot_refine=foot_refine)
             again.source.info["length"] = again.edited.info["length"] = "held"
             return again
 
@@ -743,12 +753,12 @@ class Pipeline:
                 z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, shared_noise=True,
                                  on_step=on_step, blend=plan.blend, watch=self._length_watch(band, steps, sampler))
         except _LengthLeftBand as left:
-            return again_at(left.frames)
+            return again_at(left.frames, left.steps)
         source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock,
                                      length=self.length_source(seconds), feet="refine" if foot_refine else "defer")
         held = self._held_length(band, source.frames)
         if held is not None:
-            return again_at(held)
+            return again_at(held, steps)
         source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
         params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler=sampler)
         return EditResult(source, edited, source.attention, edited.attention, params)

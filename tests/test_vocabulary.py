@@ -214,7 +214,9 @@ def test_auto_length_is_the_models_own_held_within_the_priors_band(tiny_model, t
     for seed in range(3):
         own = pipe.generate(prompt, seconds="model", seed=seed, steps=steps)
         ran = []
-        auto = pipe.generate(prompt, seed=seed, steps=steps, progress=lambda i, n: ran.append(i))
+        auto = pipe.generate(prompt, seed=seed, steps=steps, progress=lambda i, n: ran.append((i, n)))
+        # a sampling run again at a held length goes on counting: done 1, 2, ... of all the work so far
+        assert [i for i, _ in ran] == list(range(1, len(ran) + 1)) and ran[-1][1] == len(ran)
         assert lo <= auto.frames <= hi
         if auto.info["length"] == "model":        # kept: the very same motion, sampled once
             assert lo <= own.frames <= hi and np.array_equal(auto.joints, own.joints) and len(ran) == steps
@@ -239,8 +241,9 @@ def test_auto_length_is_the_models_own_held_within_the_priors_band(tiny_model, t
         pipe.generate(prompt, seed=seed, steps=steps, progress=lambda i, n: ran.append(i))
         stopped_early += len(ran) == early + steps
     ran = []
-    edit = pipe.edit(prompt, "a person runs forward", seed=0, steps=steps, progress=lambda i, n: ran.append(i))
+    edit = pipe.edit(prompt, "a person runs forward", seed=0, steps=steps, progress=lambda i, n: ran.append((i, n)))
     assert edit.source.frames == frames and len(ran) in (steps, early + steps, 2 * steps)
+    assert [i for i, _ in ran] == list(range(1, len(ran) + 1)) and ran[-1][1] == len(ran)
     assert stopped_early > 0
     # the consistency sampler's few steps are not watched
     assert pipe._length_watch((frames, frames), 4, "consistency") is None and pipe._length_watch(None, 50, "ddim") is None
