@@ -36,7 +36,7 @@ from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
 from .models.vocabulary import PromptCheck
 from .precision import bf16_supported, resolve_device
-from .progress import Progress
+from .progress import Progress, continued
 from .motion.cleanup import clean_motion
 from .motion.footlock import planted_mask
 from .motion.control import control_errors, make_signal
@@ -110,12 +110,6 @@ class _LengthLeftBand(Exception):
     def __init__(self, frames: int, steps: int):
         super().__init__(frames)
         self.frames, self.steps = frames, steps
-
-
-def _after(progress: Progress | None, spent: int) -> Progress | None:
-    """progress for a sampling that follows `spent` reported steps (one run again at a held length): the
-    count goes on (spent + i of spent + n) rather than starting again from zero."""
-    return None if progress is None else lambda i, n: progress(spent + i, spent + n)
 
 
 class Pipeline:
@@ -526,12 +520,12 @@ class Pipeline:
                           watch=self._length_watch(band, steps, sampler) if batch == 1 else None)
             spent = steps
         except _LengthLeftBand as left:
-            motions = run(left.frames, length="held", progress=_after(progress, left.steps))
+            motions = run(left.frames, length="held", progress=continued(progress, left.steps))
             spent = left.steps + steps
         for b, m in enumerate(motions):
             held = self._held_length(band, m.frames)
             if held is not None:
-                motions[b] = run(held, length="held", row=b, progress=_after(progress, spent))[0]
+                motions[b] = run(held, length="held", row=b, progress=continued(progress, spent))[0]
                 spent += steps
         return motions[0] if batch == 1 else motions
 
@@ -743,7 +737,7 @@ class Pipeline:
 
         def again_at(held: int, spent: int) -> EditResult:      # both branches again, at the source's band edge
             again = self.edit(source_prompt, seed=seed, seconds=held / FPS, steps=steps, cfg=cfg, sampler=sampler,
-                              progress=_after(progress, spent), foot_lock=foot_lock, spec=spec,
+                              progress=continued(progress, spent), foot_lock=foot_lock, spec=spec,
                               foot_refine=foot_refine)
             again.source.info["length"] = again.edited.info["length"] = "held"
             return again
