@@ -42,6 +42,13 @@ class DenoiserConfig:
     # A consistency-distilled student takes the classifier-free guidance scale as a condition
     # (embedded like the timestep), so one forward per step stands in for CFG's two.
     guidance_embedding: bool = False
+    # Width of the frame and timestep sinusoids (0: dim). A model widened from a narrower one
+    # (widen.py) keeps its parent's sinusoids, tiled over the width, so it starts as that model.
+    sinusoid_dim: int = 0
+
+    @property
+    def sinusoid_width(self) -> int:
+        return self.sinusoid_dim or self.dim
 
 
 def sinusoid(positions: torch.Tensor, dim: int) -> torch.Tensor:
@@ -108,17 +115,19 @@ class Denoiser(nn.Module):
     def __init__(self, config: DenoiserConfig | None = None):
         super().__init__()
         self.config = c = config or DenoiserConfig()
-        d = c.dim
+        d, s = c.dim, c.sinusoid_width
+        if d % s or s % 2:
+            raise ValueError(f"sinusoid_dim {s} must be even and divide dim {d}")
         in_dim = c.latent_dim + (d if not c.cross_attention else 0)
         self.input = nn.Sequential(nn.Linear(in_dim, d), nn.ReLU(), nn.Linear(d, d))
         self.part_embedding = nn.Parameter(torch.zeros(c.parts, d))
         nn.init.normal_(self.part_embedding, std=0.02)
         self.pe_drop = Dropout(c.dropout)
-        self.time_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+        self.time_mlp = nn.Sequential(nn.Linear(s, d), nn.SiLU(), nn.Linear(d, d))
         self.length_mode = nn.Embedding(2, d) if c.length_modes else None
         self.guidance_mlp = None
         if c.guidance_embedding:
-            self.guidance_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+            self.guidance_mlp = nn.Sequential(nn.Linear(s, d), nn.SiLU(), nn.Linear(d, d))
             # zero at first, so a student initialised from its teacher starts as the teacher
             nn.init.zeros_(self.guidance_mlp[-1].weight)
             nn.init.zeros_(self.guidance_mlp[-1].bias)
@@ -167,18 +176,19 @@ class Denoiser(nn.Module):
             sent = self.text_proj(pooled_text)[:, None, None, :].expand(B, T, J, c.dim)
             h = self.input(torch.cat((z, sent), dim=-1))
             text_tokens = None
-        frames = torch.arange(T, device=z.device)
-        h = h + sinusoid(frames, c.dim).to(h.dtype)[None, :, None, :] + self.part_embedding
+        s = c.sinusoid_width
+        frames = sinusoid(torch.arange(T, device=z.device), s).repeat(1, c.dim // s)
+        h = h + frames.to(h.dtype)[None, :, None, :] + self.part_embedding
         h = self.pe_drop(h)
 
-        emb = self.time_mlp(sinusoid(t, c.dim).to(h.dtype))
+        emb = self.time_mlp(sinusoid(t, s).to(h.dtype))
         if self.length_mode is not None:
             mode = torch.zeros(B, dtype=torch.long, device=z.device) if auto_length is None else auto_length.long()
             emb = emb + self.length_mode(mode)
         if self.guidance_mlp is not None:
             if guidance is None:
                 raise ValueError("this denoiser is a distilled student and needs the guidance scale")
-            emb = emb + self.guidance_mlp(sinusoid(guidance * GUIDANCE_EMBED_SCALE, c.dim).to(h.dtype))
+            emb = emb + self.guidance_mlp(sinusoid(guidance * GUIDANCE_EMBED_SCALE, s).to(h.dtype))
 
         skips = []
         for i, layer in enumerate(self.layers):

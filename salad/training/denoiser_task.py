@@ -29,6 +29,7 @@ from ..models.denoiser import Denoiser
 from ..checkpoint import CheckpointError, load_state_strict
 from .balance import class_weights, dataset_content
 from ..models.io import load_denoiser, load_vae, save_denoiser, vae_latent_checksums, vae_latent_origin
+from ..models.widen import widen, widened_config
 from ..models.text import load_text_encoder, parse_text_encoder_spec
 from ..models.text_bank import TextBank, cached_text_bank
 from ..precision import resolve_device
@@ -354,6 +355,10 @@ class DenoiserTask:
         if theirs.get("name") != mine.get("name"):
             raise CheckpointError(f"{path} was trained with the {theirs.get('name')} text encoder, this config "
                                   f"uses {mine.get('name')}")
+        if denoiser.config != into.config and widened_config(denoiser.config) == into.config:
+            denoiser = widen(denoiser)
+            print(f"{path}: widened from d = {denoiser.config.dim // 2} to {denoiser.config.dim}, "
+                  "computing what it computed", flush=True)
         load_state_strict(into, denoiser.state_dict(), str(path))
         return doc.get("meta", {})
 
