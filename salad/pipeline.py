@@ -174,10 +174,11 @@ class Pipeline:
 
     def sampler_settings(self, sampler: str) -> dict:
         """What a report should record of the sampling settings for `sampler` (the teacher's, and the
-        latent projections every sampler's motions go through)."""
+        latent projections every sampler's motions go through), and the precision the model ran in."""
         guidance = {"cfg_rescale": self.cfg_rescale, "cfg_cutoff": self.cfg_cutoff}
         teacher = {"ddim": {"ddim_eta": self.ddim_eta, **guidance}, "dpm": guidance}.get(sampler, {})
-        return {**teacher, "projections": self.projections, "foot_refine": self.foot_refine}
+        return {**teacher, "projections": self.projections, "foot_refine": self.foot_refine,
+                "precision": "bf16 autocast" if self.bf16 else "fp32"}
 
     # ------------------------------------------------------------ validation
     @property

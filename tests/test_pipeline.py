@@ -96,11 +96,16 @@ def test_generated_motions_can_go_through_the_vae_once_more_before_the_last_deco
     pipe.set_foot_refine(0)                 # the projection alone (the refinement after it has its own test)
     plain = pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3)
     assert plain.info["projections"] == pipe.projections == LATENT_PROJECTIONS == 0
-    assert pipe.sampler_settings("consistency") == {"projections": 0, "foot_refine": 0}
+    precision = "bf16 autocast" if pipe.bf16 else "fp32"           # as the machine allows
+    assert pipe.sampler_settings("consistency") == {"projections": 0, "foot_refine": 0, "precision": precision}
     pipe.set_projections(1)
     projected = pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3)
     assert projected.info["projections"] == 1 and not np.allclose(plain.features, projected.features, atol=1e-3)
-    assert pipe.sampler_settings("consistency") == {"projections": 1, "foot_refine": 0}
+    assert pipe.sampler_settings("consistency") == {"projections": 1, "foot_refine": 0, "precision": precision}
+    # reports say what the model ran in, after the sampling settings
+    from salad.diffusion.sampling import describe_settings
+    assert describe_settings({"sampler": "consistency", **pipe.sampler_settings("consistency")}) == \
+        f" (1 VAE projection, {precision})"
     # one projection: the decoded motion encoded to its posterior mean and decoded again
     with torch.no_grad():
         mu, _ = pipe.vae.encode(torch.from_numpy(pipe.normalizer.normalize(plain.features)).float()[None])

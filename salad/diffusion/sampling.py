@@ -33,9 +33,9 @@ def cfg_combine(out: torch.Tensor, scale: float | torch.Tensor, rescale: float =
 def describe_settings(settings: dict) -> str:
     """Reports' words for a run's ddim_eta, cfg_rescale and cfg_cutoff (absent: the run predates them,
     eta 0, plain guidance at every step), its latent projections and planted-feet refinement (absent or 0:
-    none), e.g.
-    " (eta 1, CFG rescale 0.7, no guidance below t = 300, 1 VAE projection)"; the consistency sampler
-    has only the last two."""
+    none) and its precision (absent: not recorded), e.g.
+    " (eta 1, CFG rescale 0.7, no guidance below t = 300, 1 VAE projection, fp32)"; the consistency
+    sampler has only the last three."""
     parts = []
     if settings.get("sampler") != "consistency":
         parts = [f"eta {settings.get('ddim_eta', 0.0):g}"] if settings.get("sampler", "ddim") == "ddim" else []
@@ -47,6 +47,8 @@ def describe_settings(settings: dict) -> str:
         parts.append(f"{n} VAE projection{'s' if n > 1 else ''}")
     if settings.get("foot_refine", 0):
         parts.append(f"planted feet refined within {settings['foot_refine']} evaluations")
+    if settings.get("precision"):
+        parts.append(settings["precision"])
     return f" ({', '.join(parts)})" if parts else ""
 
 
