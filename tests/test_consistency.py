@@ -489,3 +489,39 @@ def test_a_run_does_not_resume_onto_another_teacher(tiny_model, tiny_dataset, tm
     capsys.readouterr()
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 2
     assert "differs in ['teacher_sha256']" in capsys.readouterr().err
+
+
+def test_a_narrow_student_learns_from_a_widened_teacher(tiny_student, tiny_model, tiny_dataset, tmp_path, capsys):
+    from salad.cli import main
+    from salad.config import from_dict
+    from salad.diffusion.schedule import DiffusionConfig
+    from salad.models.io import load_denoiser, save_denoiser
+    from salad.models.widen import widen
+    from salad.pipeline import load_pipeline
+
+    narrow, doc = load_denoiser(tiny_model / "denoiser")
+    c = doc["config"]
+    wide = tmp_path / "wide"
+    wide.mkdir()
+    (wide / "vae").symlink_to((tiny_model / "vae").resolve())
+    save_denoiser(wide / "denoiser", widen(narrow), from_dict(DiffusionConfig, c["diffusion"]), c["text_encoder"],
+                  c["canvas_frames"], c["vae_checksum"], meta=doc["meta"])
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, wide, steps=2,
+                           extra=f'student = "{tiny_student / "consistency"}"')
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run")]) == 0
+    student, sdoc = load_denoiser(tmp_path / "run" / "model")
+    _, wdoc = load_denoiser(wide / "denoiser")
+    assert student.config.dim == narrow.config.dim and student.config.guidance_embedding
+    assert sdoc["meta"]["consistency"]["teacher"]["sha256"] == wdoc["files"]["denoiser"]["sha256"]
+    start, _ = load_denoiser(tiny_student / "consistency")
+    assert not torch.allclose(student.output[-1].weight, start.output[-1].weight)     # it trained from there
+    # the pair loads and samples: the wide teacher for DDIM, the narrow student for the consistency sampler
+    (wide / "consistency").symlink_to(tmp_path / "run" / "model")
+    pipe = load_pipeline(wide)
+    assert pipe.denoiser.config.dim == 2 * pipe.student.config.dim
+    for sampler, steps in (("ddim", 3), ("consistency", 2)):
+        assert np.isfinite(pipe.generate("a person walks", seconds=1.6, seed=0, steps=steps, sampler=sampler).joints).all()
+    # a teacher is no student to start from
+    consistency_toml(cfg, tiny_dataset, wide, steps=2, extra=f'student = "{tiny_model / "denoiser"}"')
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run2")]) == 2
+    assert "not a consistency-distilled student" in capsys.readouterr().err

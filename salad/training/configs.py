@@ -142,3 +142,6 @@ class ConsistencyTrainConfig:
     # below cfg_cutoff x T, as the pipeline's teacher sampling does (0, 0: plain CFG at every step)
     cfg_rescale: float = 0.0
     cfg_cutoff: float = 0.0
+    # an exported student to start from, of any width (e.g. a d = 128 student for a widened teacher, so
+    # that sampling stays fast); empty: the teacher's own architecture and weights
+    student: str = ""

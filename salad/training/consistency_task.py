@@ -43,16 +43,21 @@ COND_KEYS = ("text", "text_mask", "frame_mask", "pooled", "auto", "text2", "text
 class ConsistencyTraining(nn.Module):
     def __init__(self, teacher: Denoiser, schedule: NoiseSchedule, target_decay: float, huber_c: float,
                  objective: str = "lcd", teacher_steps: int = 25, replay_buffer: int = 16,
-                 cfg_rescale: float = 0.0, cfg_cutoff: float = 0.0):
+                 cfg_rescale: float = 0.0, cfg_cutoff: float = 0.0, student: Denoiser | None = None):
+        """student: where the student starts (e.g. a narrower one than the teacher, so it stays fast);
+        None: the teacher's architecture and weights with a zero guidance embedding."""
         super().__init__()
         if objective not in OBJECTIVES:
             raise ValueError(f"unknown consistency target {objective!r}; choose one of {', '.join(OBJECTIVES)}")
-        cfg = copy.deepcopy(teacher.config)
-        cfg.guidance_embedding = True
-        self.student = Denoiser(cfg)
-        missing, unexpected = self.student.load_state_dict(teacher.state_dict(), strict=False)
-        if unexpected or any(not k.startswith("guidance_mlp.") for k in missing):
-            raise CheckpointError(f"the student does not fit the teacher (missing {missing}, unexpected {unexpected})")
+        if student is None:
+            cfg = copy.deepcopy(teacher.config)
+            cfg.guidance_embedding = True
+            student = Denoiser(cfg)
+            missing, unexpected = student.load_state_dict(teacher.state_dict(), strict=False)
+            if unexpected or any(not k.startswith("guidance_mlp.") for k in missing):
+                raise CheckpointError(f"the student does not fit the teacher (missing {missing}, "
+                                      f"unexpected {unexpected})")
+        self.student = student
         self.target = copy.deepcopy(self.student).requires_grad_(False)
         self.teacher = teacher.requires_grad_(False)
         self.schedule, self.target_decay, self.huber_c = schedule, target_decay, huber_c
@@ -152,6 +157,22 @@ class ConsistencyTraining(nn.Module):
                       "solved": float(bool(batch["fresh"]))}
 
 
+def _student_for(teacher: Denoiser, teacher_doc_config: dict, path: str, vae_checksums: set[str]) -> Denoiser:
+    """The exported student at `path` as the start of a student for `teacher`: any width, but the
+    same latents (one of `vae_checksums`), body parts, text features and diffusion."""
+    student, doc, _ = load_consistency_student(path)
+    s, t = student.config, teacher.config
+    mismatched = [k for k in ("latent_dim", "parts", "text_dim", "cross_attention", "length_modes")
+                  if getattr(s, k) != getattr(t, k)]
+    mismatched += [k for k in ("diffusion", "text_encoder", "canvas_frames")
+                   if doc["config"].get(k) != teacher_doc_config.get(k)]
+    if doc["config"].get("vae_checksum") not in vae_checksums:
+        mismatched.append("VAE latents")
+    if mismatched:
+        raise CheckpointError(f"student {path} does not fit the teacher: its {', '.join(mismatched)} differ")
+    return student.train()
+
+
 def _pad_tokens(tokens: torch.Tensor, mask: torch.Tensor, length: int) -> tuple[torch.Tensor, torch.Tensor]:
     extra = length - tokens.shape[1]
     if extra <= 0:
@@ -197,8 +218,10 @@ class ConsistencyTask:
             posterior_noise=float(teacher_training.get("posterior_noise", 1.0))), show_progress=show_progress)
         self.schedule = self.data.schedule
         self.grid = grid_timesteps(self.schedule)
+        student = _student_for(teacher, tcfg, cfg.student, vae_latent_checksums(root / "vae")) if cfg.student else None
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
-                                         cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff)
+                                         cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff,
+                                         student)
         self._drawn = 0
 
     def _replayed(self, rng: np.random.Generator) -> dict | None:
