@@ -74,3 +74,9 @@ def test_training_from_a_narrow_checkpoint_widens_it_and_keeps_its_loss(tiny_mod
     assert main(["train", "denoiser", "--config", str(other), "--vae", str(tiny_model / "vae"),
                  "--init-from", str(tiny_model / "denoiser"), "--validate-only"]) == 2
     assert "weights do not fit the model" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("bad", [-32, 24, 33])
+def test_sinusoid_widths_that_cannot_tile_the_model_are_refused(bad):
+    with pytest.raises(ValueError, match="sinusoid_dim"):
+        Denoiser(DenoiserConfig(dim=64, heads=2, ff_dim=64, layers=1, sinusoid_dim=bad))

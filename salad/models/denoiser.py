@@ -116,8 +116,8 @@ class Denoiser(nn.Module):
         super().__init__()
         self.config = c = config or DenoiserConfig()
         d, s = c.dim, c.sinusoid_width
-        if d % s or s % 2:
-            raise ValueError(f"sinusoid_dim {s} must be even and divide dim {d}")
+        if s <= 0 or s % 2 or d % s:
+            raise ValueError(f"sinusoid_dim {s} must be positive, even and divide dim {d}")
         in_dim = c.latent_dim + (d if not c.cross_attention else 0)
         self.input = nn.Sequential(nn.Linear(in_dim, d), nn.ReLU(), nn.Linear(d, d))
         self.part_embedding = nn.Parameter(torch.zeros(c.parts, d))
