@@ -31,7 +31,8 @@ from .editing.spec import DEFAULT_SELF_INJECT, EditResult, EditSpec
 from .editing.store import AttentionStore, RowAddressed
 from .config import from_dict
 from .models.denoiser import Denoiser
-from .models.io import load_consistency_student, load_denoiser, load_vae, vae_latent_checksums
+from .models.io import (load_consistency_student, load_denoiser, load_vae, partner_mismatches,
+                        vae_latent_checksums)
 from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
 from .models.vocabulary import PromptCheck
@@ -822,12 +823,10 @@ def load_student(root: Path, teacher_config: dict, vae_checksums: set[str]) -> t
     if not path.is_dir():
         return None, {}
     student, doc, info = load_consistency_student(path)
-    cfg = doc["config"]
-    if cfg.get("vae_checksum") and cfg["vae_checksum"] not in vae_checksums:
-        raise CheckpointError(f"{path}: the student was distilled on a different VAE than {root / 'vae'}")
-    for key in ("text_encoder", "diffusion", "canvas_frames"):
-        if cfg.get(key) != teacher_config.get(key):
-            raise CheckpointError(f"{path}: the student's {key} differs from the denoiser's; redistil it")
+    bad = partner_mismatches(doc["config"], teacher_config, vae_checksums)
+    if bad:
+        raise CheckpointError(f"{path}: the student's {', '.join(bad)} differ from the denoiser's "
+                              f"(VAE: {root / 'vae'}); redistil it")
     uses = info.get("default_for", [])
     if not isinstance(uses, list) or not set(uses) <= set(STUDENT_USES):
         raise CheckpointError(f"{path}/config.json: meta.consistency.default_for must be a list drawn from "

@@ -69,6 +69,16 @@ def load_consistency_student(path: str | Path) -> tuple[Denoiser, dict, dict]:
     return student, doc, info
 
 
+def partner_mismatches(config: dict, reference: dict, vae_checksums: set[str]) -> list[str]:
+    """What keeps a checkpoint (the "config" of its config.json) from sampling beside the one whose config
+    is `reference`: the text features, diffusion or canvas that differ, and "VAE latents" when it records
+    a VAE outside `vae_checksums`."""
+    bad = [k for k in ("text_encoder", "diffusion", "canvas_frames") if config.get(k) != reference.get(k)]
+    if config.get("vae_checksum") and config["vae_checksum"] not in vae_checksums:
+        bad.append("VAE latents")
+    return bad
+
+
 def vae_checksum(path: str | Path) -> str:
     """Identifies a VAE checkpoint by its weights file, so a denoiser can check its partner."""
     return read_checkpoint_config(path, kind="vae")["files"]["vae"]["sha256"]

@@ -31,7 +31,8 @@ from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_time
 from ..diffusion.sampling import cfg_combine
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
 from ..models.denoiser import Denoiser
-from ..models.io import load_consistency_student, load_denoiser, save_denoiser, vae_latent_checksums, vae_latent_origin
+from ..models.io import (load_consistency_student, load_denoiser, partner_mismatches, save_denoiser,
+                         vae_latent_checksums, vae_latent_origin)
 from .configs import ConsistencyTrainConfig, DenoiserTrainConfig
 from .denoiser_task import DenoiserTask
 
@@ -164,10 +165,7 @@ def _student_for(teacher: Denoiser, teacher_doc_config: dict, path: str, vae_che
     s, t = student.config, teacher.config
     mismatched = [k for k in ("latent_dim", "parts", "text_dim", "cross_attention", "length_modes")
                   if getattr(s, k) != getattr(t, k)]
-    mismatched += [k for k in ("diffusion", "text_encoder", "canvas_frames")
-                   if doc["config"].get(k) != teacher_doc_config.get(k)]
-    if doc["config"].get("vae_checksum") not in vae_checksums:
-        mismatched.append("VAE latents")
+    mismatched += partner_mismatches(doc["config"], teacher_doc_config, vae_checksums)
     if mismatched:
         raise CheckpointError(f"student {path} does not fit the teacher: its {', '.join(mismatched)} differ")
     return student.train()
