@@ -299,6 +299,7 @@ BANDAI_SUBSET = (
     "Bandai-Namco-Research-Motiondataset-2/data/dataset-2_wave-left-hand_active_011",  # truncated: 19 frames
     "Bandai-Namco-Research-Motiondataset-2/data/dataset-2_walk-turn-right_elderly_001",
     "Bandai-Namco-Research-Motiondataset-2/data/dataset-2_raise-up-both-hands_exhausted_001",
+    "Bandai-Namco-Research-Motiondataset-2/data/dataset-2_walk-turn-right_masculine_007",  # turns left
 )
 
 

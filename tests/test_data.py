@@ -1,4 +1,5 @@
 import json
+import re
 import tarfile
 from collections import Counter
 from pathlib import Path
@@ -8,6 +9,7 @@ import pytest
 
 from salad.data import captions as cap
 from salad.data.build import (CAPTIONS_PER_CLIP, PLAIN_CAPTIONS, SPLIT_PATTERN, Clip, assign_splits, build_bandai,
+                              contrary_turns,
                               cut_off_takes, dataset_stats)
 from salad.data.dataset import (DatasetError, MotionDataset, WindowSampler, collate_motions, parse_caption_line)
 from salad.motion import representation as rep
@@ -95,6 +97,29 @@ def test_a_take_far_shorter_than_its_actions_others_is_cut_off():
     assert list(cut_off_takes(walks_back + kicks + raises, frames)) == ["b1_walk-back_normal_001"]
 
 
+def _turning_body(degrees: float, frames: int = 80) -> np.ndarray:
+    """Joints whose hips and shoulders turn by `degrees` about +Y (positive: to the body's left)."""
+    from salad.motion import skeleton as sk
+    yaw = np.radians(np.linspace(0.0, degrees, frames))
+    across = np.stack((np.cos(yaw), np.zeros(frames), -np.sin(yaw)), axis=-1) * 0.1   # the body's left
+    j = np.zeros((frames, sk.NUM_JOINTS, 3))
+    for name, sign, height in (("left_hip", 1, 0.9), ("right_hip", -1, 0.9),
+                               ("left_shoulder", 1, 1.4), ("right_shoulder", -1, 1.4)):
+        j[:, sk.JOINT_NAMES.index(name)] = sign * across + [0.0, height, 0.0]
+    return j
+
+
+def test_a_walk_turn_take_that_turns_against_its_action_is_left_out():
+    turns = {"l_ok": ("walk-turn-left", 90), "l_wrong": ("walk-turn-left", -90), "r_ok": ("walk-turn-right", -95),
+             "r_wrong": ("walk-turn-right", 260), "r_straight": ("walk-turn-right", -10), "walk": ("walk", 120)}
+    clips = [Clip(n, Path(f"{n}.bvh"), 2, content, "normal") for n, (content, _) in turns.items()]
+    out = contrary_turns(clips, lambda name: _turning_body(turns[name][1]))
+    assert sorted(out) == ["l_wrong", "r_straight", "r_wrong"]
+    # the ends are averaged over a few smoothed frames, so the angle reads a little under the true turn
+    assert re.fullmatch(r"r_wrong.bvh: turns 2[3-6]\d° to the left, against its action walk-turn-right", out["r_wrong"])
+    assert re.search(r"turns [5-9]° to the right", out["r_straight"])
+
+
 def test_loader_batches_windows_and_subclips(tiny_dataset, tmp_path):
     ds = MotionDataset(tiny_dataset, "train")
     assert len(ds) == 8 and ds.dim == 263
@@ -126,9 +151,12 @@ def test_build_from_real_bandai_clips(bandai_subset, tmp_path):
         tar.add(bandai_subset, arcname="dataset")
     out = tmp_path / "hml"
     report = build_bandai(archive, out, workers=1, progress=False)
-    assert report["clips_found"] == 6 and report["clips_built"] == 5
-    assert list(report["skipped"]) == ["b2_wave-left-hand_active_011"] and "too short" in report["skipped"][
-        "b2_wave-left-hand_active_011"]
+    assert report["clips_found"] == 7 and report["clips_built"] == 5
+    assert list(report["skipped"]) == ["b2_walk-turn-right_masculine_007", "b2_wave-left-hand_active_011"]
+    assert "too short" in report["skipped"]["b2_wave-left-hand_active_011"]
+    # a take labelled a right turn that turns left is left out, and the right turn that turns right kept
+    assert re.search(r"turns \d+° to the left, against its action walk-turn-right",
+                     report["skipped"]["b2_walk-turn-right_masculine_007"])
     ids = sorted(p.stem for p in (out / "new_joint_vecs").glob("*.npy"))
     assert len(ids) == 10 and all(f"M{i}" in ids for i in ids if not i.startswith("M"))
     splits = {s: (out / f"{s}.txt").read_text().split() for s in ("train", "val", "test")}

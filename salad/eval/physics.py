@@ -60,6 +60,13 @@ def heading(joints: np.ndarray) -> np.ndarray:
     return gaussian_filter1d(yaw, HEADING_SIGMA, mode="nearest") if len(yaw) > 1 else yaw
 
 
+def net_turn_deg(joints: np.ndarray, yaw: np.ndarray | None = None) -> float:
+    """How far the body turned from its first frames to its last (degrees, positive = to its left)."""
+    yaw = heading(joints) if yaw is None else yaw
+    k = max(1, min(TURN_WINDOW, len(yaw) // 4))
+    return float(np.degrees(yaw[-k:].mean() - yaw[:k].mean()))
+
+
 def _body_frame_offsets(joints: np.ndarray, index: int, yaw: np.ndarray) -> np.ndarray:
     """Joint position relative to the pelvis, turned so the body faces +Z: (T, 3)."""
     rel = joints[:, index] - joints[:, PELVIS]
@@ -128,8 +135,7 @@ def physical_checks(joints: np.ndarray, fps: float = FPS) -> dict[str, float]:
         out[f"{side}_wrist_height_m"] = float(rel[:, 1].max())
     root = j[:, PELVIS, :]
     out["root_speed_mps"] = float(np.linalg.norm(np.diff(root[:, [0, 2]], axis=0), axis=-1).mean() * fps)
-    k = max(1, min(TURN_WINDOW, len(yaw) // 4))
-    out["turn_deg"] = float(np.degrees(yaw[-k:].mean() - yaw[:k].mean()))
+    out["turn_deg"] = net_turn_deg(j, yaw)
     out["foot_skating_ratio"] = foot_skating_ratio(j, fps)
     lowest = j[:, :, 1].min(axis=1)
     depth = np.maximum(-lowest, 0.0)
