@@ -390,11 +390,15 @@ def build_bandai(source: str | Path, out: str | Path, workers: int = 2, seed: in
         work = start_build(out, {"builder": "bandai", "clips": source_fingerprint(sources)})
         conv = convert_clips(sources, work, mapping="bandai", mirror=True, workers=workers, progress=progress)
 
+    def shown(why: str) -> str:
+        # the unpacked copy is gone by now: name a clip by its place in the archive
+        return why.replace(f"{unpack}{os.sep}", f"{source.name}:") if root != source else why
+
     good = [c for c in clips if c.name not in conv.skipped]
     if not good:
         shutil.rmtree(work, ignore_errors=True)  # nothing worth resuming
         raise BuildError(f"{source}: no clip could be imported; first problems: "
-                         + "; ".join(list(conv.skipped.values())[:3]))
+                         + "; ".join(shown(why) for why in list(conv.skipped.values())[:3]))
     cut = cut_off_takes(good, {c.name: np.load(work / "new_joint_vecs" / f"{c.name}.npy", mmap_mode="r").shape[0]
                                for c in good})
     cut.update(contrary_turns(good, lambda name: np.load(work / "new_joints" / f"{name}.npy")))
@@ -422,7 +426,7 @@ def build_bandai(source: str | Path, out: str | Path, workers: int = 2, seed: in
                                            "split": splits[c.name]}
     report = {"source": str(source), "clips_found": len(clips), "clips_built": len(good),
               "clips_resumed": conv.resumed, "motions_written": 2 * len(good),
-              "skipped": dict(sorted(conv.skipped.items())), "fps": rep.FPS, "seed": seed}
+              "skipped": {n: shown(why) for n, why in sorted(conv.skipped.items())}, "fps": rep.FPS, "seed": seed}
     return finish_build(work, out, texts, {n: lab["split"] for n, lab in labels.items()}, report,
                         {"labels.json": labels})
 
