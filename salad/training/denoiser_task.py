@@ -14,6 +14,7 @@ there would fight the diffusion objective.
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+from tqdm import tqdm
 
 from ..config import ConfigError, to_dict
 from ..data.dataset import MotionDataset
@@ -357,8 +359,8 @@ class DenoiserTask:
                                   f"uses {mine.get('name')}")
         if denoiser.config != into.config and widened_config(denoiser.config) == into.config:
             denoiser = widen(denoiser)
-            print(f"{path}: widened from d = {denoiser.config.dim // 2} to {denoiser.config.dim}, "
-                  "computing what it computed", flush=True)
+            tqdm.write(f"{path}: widened from d = {denoiser.config.dim // 2} to {denoiser.config.dim}, "
+                       "computing what it computed", file=sys.stderr)
         load_state_strict(into, denoiser.state_dict(), str(path))
         return doc.get("meta", {})
 
