@@ -734,6 +734,11 @@ def test_the_denoisers_validation_loss_is_logged_and_compares_across_recipes(tin
     trainer.model.train()
     trainer.validate()
     assert trainer.model.training and not trainer.ema.training
+    # a run in bf16 validates in fp32, on the scale of a run in fp32
+    cfg.run.bf16 = True
+    bf16_run = Trainer(task, cfg.optim, cfg.run, ema_decay=cfg.ema_decay)
+    bf16_run.ema.load_state_dict(model.state_dict())
+    assert bf16_run.validate() == trainer.validate()
 
 
 def test_the_cli_prints_a_snapshots_validation_loss_without_training(tiny_model, tiny_dataset, tmp_path, capsys):
