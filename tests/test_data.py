@@ -9,8 +9,7 @@ import pytest
 
 from salad.data import captions as cap
 from salad.data.build import (CAPTIONS_PER_CLIP, PLAIN_CAPTIONS, SPLIT_PATTERN, Clip, assign_splits, build_bandai,
-                              contrary_turns,
-                              cut_off_takes, dataset_stats)
+                              contrary_turns, cut_off_takes, dataset_stats)
 from salad.data.dataset import (DatasetError, MotionDataset, WindowSampler, collate_motions, parse_caption_line)
 from salad.motion import representation as rep
 
