@@ -17,6 +17,7 @@ import json
 import math
 import re
 from dataclasses import dataclass
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +50,13 @@ INDEX_DIMS = 64
 # place. Per-caption medians in the Bandai training split: raises, waves, bows, calls and gestures
 # 0.01-0.20; actions that step or use the legs (punch, dance, kick, slash) 0.22-0.45; walks 0.46 and up.
 IN_PLACE_SPEED = 0.25
+
+# A side given to a body part no training caption gives one to is read by the side word alone, which
+# the captions tie to the parts they do side: the Bandai captions side only hands and arms, and "a man
+# kicks with his right leg" waved goodbye in 2 of 3 seeds (README, Limitations).
+SIDES = ("left", "right")
+BODY_PARTS = frozenset({"hand", "arm", "leg", "foot", "feet", "knee", "shoulder", "elbow", "wrist", "fist",
+                        "hip", "ankle", "toe", "heel", "thigh"})
 
 # A prompt whose best cosine similarity (mean-pooled text-encoder features) to the training caption
 # sample is below this asks for something the model has not learned. With MiniLM on the Bandai
@@ -251,6 +259,7 @@ class PromptCheck:
         self._features = features
         self.index = index
         self._lexicon: frozenset[str] | None = None
+        self._sided: frozenset[str] | None = None
 
     @classmethod
     def load(cls, model_dir: str | Path, encoder: TextEncoder) -> "PromptCheck | None":
@@ -337,6 +346,21 @@ class PromptCheck:
             out.append(w)
         return out
 
+    def sided_parts(self) -> frozenset[str]:
+        """The body parts the example captions give a side ("left hand" -> "hand")."""
+        if self._sided is None:
+            self._sided = frozenset(_part(b) for _, c in self.vocab.examples
+                                    for a, b in pairwise(split_words(c)) if a in SIDES and _part(b) in BODY_PARTS)
+        return self._sided
+
+    def unsided_parts(self, prompt: str) -> list[str]:
+        """The "side part" phrases of `prompt` ("right leg") whose part no example caption gives a side."""
+        out = []
+        for a, b in pairwise(split_words(prompt)):
+            if a in SIDES and _part(b) in BODY_PARTS - self.sided_parts() and f"{a} {b}" not in out:
+                out.append(f"{a} {b}")
+        return out
+
     def _english(self, words: list[str]) -> bool:
         if self._lexicon is None:
             tokenizer = getattr(self.encoder, "tokenizer", None)
@@ -369,4 +393,14 @@ class PromptCheck:
             out.append(f"the model never saw the word{'s' if len(unknown) > 1 else ''} {listed} in training "
                        f"and may ignore {'them' if len(unknown) > 1 else 'it'}"
                        + (f" (manner words it knows: {styles})" if styles else ""))
+        for phrase in self.unsided_parts(prompt):
+            side = phrase.split()[0]
+            known = ", ".join(sorted(self.sided_parts())) or "no body part"
+            out.append(f"no training caption names the {phrase} (captions give a side only to: {known}), so "
+                       f"'{side}' may move the motion towards those instead; better leave the side out")
         return out
+
+
+def _part(word: str) -> str:
+    """A body part's singular ("hands" -> "hand"; "feet" stays, as its own entry)."""
+    return word[:-1] if word.endswith("s") and word[:-1] in BODY_PARTS else word
