@@ -394,10 +394,10 @@ class PromptCheck:
                        f"and may ignore {'them' if len(unknown) > 1 else 'it'}"
                        + (f" (manner words it knows: {styles})" if styles else ""))
         for phrase in self.unsided_parts(prompt):
-            side = phrase.split()[0]
-            known = ", ".join(sorted(self.sided_parts())) or "no body part"
-            out.append(f"no training caption names the {phrase} (captions give a side only to: {known}), so "
-                       f"'{side}' may move the motion towards those instead; better leave the side out")
+            side, known = phrase.split()[0], ", ".join(sorted(self.sided_parts()))
+            where = f"captions give a side only to: {known}" if known else "no caption gives a body part a side"
+            out.append(f"no training caption names the {phrase} ({where}), so '{side}' may move the motion "
+                       f"towards other parts or a turn; better leave the side out")
         return out
 
 
