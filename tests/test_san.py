@@ -2,6 +2,7 @@ import json
 import os
 import shutil
 
+import numpy as np
 import pytest
 import torch
 
@@ -335,6 +336,16 @@ def test_denoised_latents_pair_training_clips_with_what_the_denoisers_make_and_t
         assert hits == 2
     trainer.fit()
     assert json.loads((tmp_path / "run" / "log.jsonl").read_text().splitlines()[-1])["step"] == 2
+
+    # per-clip weights (data.balance's, which the real windows use too) decide which clips the given half shows
+    from salad.training.vae_adv_task import DenoisedWindows
+    only = len(task.dataset.items) - 1
+    weights = np.zeros(len(task.dataset.items))
+    weights[only] = 1.0
+    given = DenoisedWindows(str(out), task.dataset, cfg.data.window, task.sources[0], weights)
+    real = torch.from_numpy(task.dataset.normalizer.normalize(task.dataset.items[only].features))
+    for f in given.batch(6, np.random.default_rng(1))["features"]:
+        assert any(torch.allclose(real[s:s + cfg.data.window], f) for s in range(0, len(real) - cfg.data.window + 1, 4))
 
     # a file made in another latent space is refused
     other, norm, scale, _ = load_vae(tiny_student / "vae")
