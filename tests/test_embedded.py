@@ -78,11 +78,11 @@ def test_reweighting_a_word_of_a_standing_action_keeps_its_legs_and_path_by_defa
     free = pipe.edit(prompt, mode="reweight", reweight={"proudly": -2.0}, seed=0, seconds=4.0, sampler="consistency",
                      hold=None)
     assert held.params["hold"] == "lower" and free.params["hold"] is None
-    held_root = root_trajectory_distance(held.edited.joints, held.source.joints)
-    free_root = root_trajectory_distance(free.edited.joints, free.source.joints)
-    # shipped student, seed 0: 0.03 m held, 0.19 m free (the edit bench's bound is 0.30 m at every s)
-    assert held_root < 0.1 and held_root < free_root
-    assert pose_distance(held.edited.joints, held.source.joints, "lower") < 0.03
+    # shipped student, seed 0: the path moves 0.03 m held, 0.02-0.04 m free (the edit bench's bound is 0.30 m at
+    # every s), too little either way to show the hold; the legs show it: 0.011 m held against 0.064 free
+    assert root_trajectory_distance(held.edited.joints, held.source.joints) < 0.1
+    held_legs = pose_distance(held.edited.joints, held.source.joints, "lower")
+    assert held_legs < 0.03 and held_legs < pose_distance(free.edited.joints, free.source.joints, "lower") / 2
     # the arms are still the edit's: held parts are the legs alone
     assert pose_distance(held.edited.joints, held.source.joints, "upper") > 0.01
     # walking is not an action done in place: its path is what a re-weighted manner word may change

@@ -174,7 +174,7 @@ class DenoisedWindows:
         self.pairs = [(k, index[n]) for k, n in enumerate(d.names) if 4 * len(d.latent(k)) >= window]
         if not self.pairs:
             raise ConfigError(f"{path}: no clip is {window} frames long")
-        # half of a batch drawn clip by clip would show a one-take action about once in a thousand windows
+        # half of a batch drawn clip by clip would show a one-take action about once in 1,400 windows
         # where data.balance asks for one in 24 (Bandai's kick): the rare actions' peaks then go unlearnt
         self.p = None
         if item_weights is not None:
