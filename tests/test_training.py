@@ -347,7 +347,7 @@ def _balance_config(root, tiny_model, out, balance):
         text_dropout=0.0)
 
 
-@pytest.mark.parametrize("balance", [1.0, 0.5, 0.0])
+@pytest.mark.parametrize("balance", [1.0, 0.5, 0.0, -0.5])
 def test_class_balance_draws_rare_actions_as_configured(tiny_model, tiny_dataset, tmp_path, balance):
     from salad.training.denoiser_task import DenoiserTask
 
@@ -362,7 +362,7 @@ def test_class_balance_draws_rare_actions_as_configured(tiny_model, tiny_dataset
         for _ in range(150):
             task.batch(rng)
     share = sum(c == "a person kicks" for c in drawn) / len(drawn)
-    expected = 2 ** balance / (2 ** balance + 6 ** balance)       # 0.25, 0.37, 0.5
+    expected = 2 ** balance / (2 ** balance + 6 ** balance)       # 0.25, 0.37, 0.5, 0.63
     assert abs(share - expected) < 0.05, (share, expected)
 
 
@@ -443,8 +443,9 @@ def test_class_balance_needs_labels_and_a_valid_exponent(tiny_model, tiny_datase
     with pytest.raises(ConfigError, match="labels"):
         DenoiserTask(_balance_config(tiny_dataset, tiny_model, tmp_path / "a", 0.5), show_progress=False)
     root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)
-    with pytest.raises(ConfigError, match=r"data.balance must be in \[0, 1\]"):
-        DenoiserTask(_balance_config(root, tiny_model, tmp_path / "b", 1.5), show_progress=False)
+    for bad in (1.5, -1.5):
+        with pytest.raises(ConfigError, match=r"data.balance must be in \[-1, 1\]"):
+            DenoiserTask(_balance_config(root, tiny_model, tmp_path / "b", bad), show_progress=False)
 
 
 def test_a_run_saved_before_a_config_field_existed_resumes_at_its_default(tiny_model, tiny_dataset, tmp_path):

@@ -17,8 +17,9 @@ class DataConfig:
     window: int = 64             # VAE training windows
     # How often each content class (labels.json) is drawn, as (its clip count)^balance: 1 = as
     # recorded; 0.5 = square root, so an action recorded 4 times is drawn 1/12 as often as one
-    # recorded 600 times instead of 1/150; 0 = every class alike. The VAE draws windows: there a
-    # class's share is (its frame count)^balance, and a motion's within it its share of the frames.
+    # recorded 600 times instead of 1/150; 0 = every class alike; below 0 (down to -1) the rarer a
+    # class, the more often it is drawn. The VAE draws windows: there a class's share is (its frame
+    # count)^balance, and a motion's within it its share of the frames.
     balance: float = 1.0
     # denoiser (and consistency) training only: a latent bundle (`salad data bundle`) to train from
     # instead of root's features and the text encoder, e.g. on a GPU machine the dataset cannot reach

@@ -116,8 +116,8 @@ class DenoiserTask:
         # encode was ~15% of a step (the cache grows to ~0.4 GB on the Bandai build). Longer
         # motions get a random window, encoded each time.
         self._posteriors: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
-        if not 0.0 <= d.balance <= 1.0:
-            raise ConfigError(f"data.balance must be in [0, 1], got {d.balance}")
+        if not -1.0 <= d.balance <= 1.0:
+            raise ConfigError(f"data.balance must be in [-1, 1], got {d.balance}")
         self.bundle = None
         self._validation: list[dict] | None = None
         if d.bundle:
