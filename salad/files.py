@@ -53,6 +53,8 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
 
 
 def shown_path(path: str | Path) -> str:
-    """A path as a report shows it: relative to the repository when inside it."""
+    """A path as a report shows it: relative to the repository when inside it ("" stays "": none given)."""
+    if not str(path):
+        return ""
     p = Path(path).resolve()
     return str(p.relative_to(REPO_ROOT)) if p.is_relative_to(REPO_ROOT) else str(path)

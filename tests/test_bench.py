@@ -36,3 +36,11 @@ def test_bench_command_refuses_bad_models_and_batches_before_measuring(tmp_path,
         code, err = cli("bench", "--out", str(tmp_path / "b.json"), *args)
         assert code == 2 and message in err, (args, err[-500:])
     assert not (tmp_path / "b.json").exists()
+
+
+def test_bench_out_takes_a_file_or_a_directory_as_the_eval_commands_do(tmp_path):
+    from salad.cli.bench import report_path
+    assert report_path(str(tmp_path / "b.json")) == tmp_path / "b.json"
+    assert report_path(str(tmp_path / "reports" / "bench-1")) == tmp_path / "reports" / "bench-1" / "bench.json"
+    (tmp_path / "odd.json").mkdir()            # a directory that happens to end in .json is still a directory
+    assert report_path(str(tmp_path / "odd.json")) == tmp_path / "odd.json" / "bench.json"

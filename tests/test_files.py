@@ -64,3 +64,12 @@ def test_training_resumes_from_the_copy_a_killed_save_moved_aside(tmp_path):
     (tmp_path / ".state.old-8").mkdir()                    # an empty leftover is not a checkpoint
     assert recover_checkpoint(tmp_path / "state")
     assert (tmp_path / "state" / "config.json").is_file()
+
+
+def test_reports_name_repository_paths_relative_to_it(tmp_path, monkeypatch):
+    from salad.files import REPO_ROOT, shown_path
+    assert shown_path(REPO_ROOT / "assets" / "model") == "assets/model"
+    monkeypatch.chdir(REPO_ROOT)
+    assert shown_path("assets/eval/classifier") == "assets/eval/classifier"
+    assert shown_path(tmp_path / "model") == str(tmp_path / "model")     # outside the repository: as given
+    assert shown_path("") == ""                                         # none given stays none, not "."

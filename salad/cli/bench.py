@@ -4,6 +4,13 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def report_path(out: str) -> Path:
+    """--out as the report file: a directory (one that exists, or a name without .json), as the eval
+    commands take, gets bench.json inside it; a .json name is the file itself."""
+    path = Path(out)
+    return path if path.suffix == ".json" and not path.is_dir() else path / "bench.json"
+
+
 def cmd_bench(a) -> int:
     from ..bench import bench, format_table
     from ..checkpoint import read_checkpoint_config
@@ -22,15 +29,18 @@ def cmd_bench(a) -> int:
         raise ValueError(f"--batches takes a comma list of batch sizes, got {a.batches!r}") from None
     if not batches or min(batches) < 1:
         raise ValueError(f"--batches: batch sizes must be >= 1, got {a.batches!r}")
-    report = bench(Path(a.out), models=models, batches=batches, quick=a.quick)
+    out = report_path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    report = bench(out, models=models, batches=batches, quick=a.quick)
     print(format_table(report))
-    print(f"\nwrote {a.out}")
+    print(f"\nwrote {out}")
     return 0
 
 
 def add_parser(sub) -> None:
     bn = sub.add_parser("bench", help="measure generation speed, solver accuracy and where the time goes")
-    bn.add_argument("--out", default="bench.json")
+    bn.add_argument("--out", default="bench.json",
+                    help="the report: a .json file, or a directory to write bench.json in")
     bn.add_argument("--models", default="embedded,paper", help="comma list: embedded, paper, or a model dir")
     bn.add_argument("--batches", default="1,16")
     bn.add_argument("--quick", action="store_true", help="one repeat per setting")

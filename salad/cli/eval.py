@@ -140,7 +140,7 @@ def cmd_eval_control(a) -> int:
                            settings=settings,
                            joints=joints, density=a.density, seed=a.seed, max_frames=a.max_frames,
                            progress=lambda msg: print(msg, flush=True))
-    res["protocol"].update(model=str(pipe.source), split=a.split, evaluator=str(a.evaluator))
+    res["protocol"].update(model=shown_path(pipe.source), split=a.split, evaluator=shown_path(a.evaluator))
     path = write_control_report(res, out)
     print(path.read_text())
     print(f"wrote {out / 'results.json'} and {path}")

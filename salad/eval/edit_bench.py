@@ -20,6 +20,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ..files import shown_path
 from .edit_suite import AMPLITUDES, DEFAULT_SCALES, REWEIGHT_BOUNDS, TARGET_HEIGHT_SLACK, EditCase, default_suite
 
 CHECK_KEYS = ("left_wrist_path_m", "right_wrist_path_m", "left_wrist_height_m", "right_wrist_height_m",
@@ -251,7 +252,8 @@ def run_edit_benchmark(pipe, classifier, cases: Sequence[EditCase] | None = None
     described = _describe_all(classifier, motions)
     records = [_record(c, seed, frames_of[c.name], motions, described, scales) for c in cases for seed in seed_list]
 
-    settings = {"model": getattr(pipe, "source", ""), "classifier": getattr(classifier, "meta", {}).get("path", ""),
+    settings = {"model": shown_path(getattr(pipe, "source", "")),
+                "classifier": shown_path(getattr(classifier, "meta", {}).get("path", "")),
                 "suite": suite, "seeds": seed_list, **sampling, **pipe.sampler_settings(sampler), "scales": list(scales),
                 "frames": frames_of,
                 "edit_defaults": _edit_defaults(edits), "held": _held_parts(edits)}

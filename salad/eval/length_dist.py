@@ -28,7 +28,7 @@ import torch
 from scipy.spatial.distance import jensenshannon
 from scipy.stats import wasserstein_distance
 
-from ..files import atomic_write, atomic_write_text
+from ..files import atomic_write, atomic_write_text, shown_path
 from ..motion.representation import FPS
 
 LENGTH_UNIT = 4          # the VAE's temporal downsampling: generated lengths are multiples of it
@@ -169,7 +169,7 @@ def evaluate_lengths(pipe, dataset, samples: int = 256, seed: int = 0, steps: in
         "protocol": {"samples": samples, "unique_captions": len(set(captions)), "seed": seed, "steps": steps,
                      "cfg": cfg, "sampler": sampler, "batch": batch, "bin_frames": bin_frames,
                      "canvas_frames": canvas, "fixed_length_frames": fixed, "dataset": str(dataset.root),
-                     "model": str(getattr(pipe, "source", ""))},
+                     "model": shown_path(getattr(pipe, "source", ""))},
         "time_s": {"generation": round(gen_time, 2), "per_sample": round(gen_time / samples, 3)},
     }
 

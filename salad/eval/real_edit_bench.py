@@ -28,7 +28,7 @@ from ..data.dataset import read_clip
 from ..data.labels import pick_test_clips, read_labels
 from ..diffusion.inversion import METHODS, invert
 from ..editing.real import decode, edit_inverted, encode, reconstruct
-from ..files import atomic_write_text
+from ..files import atomic_write_text, shown_path
 from ..motion.real import load_real_motion
 from ..motion.representation import features_to_joints, mirror_features
 from .classifiers import load_classifier
@@ -207,7 +207,8 @@ def run_real_edit_bench(pipe, data: str | Path, classifier: str | Path, out: str
     labels = read_labels(root)
     clf = load_classifier(classifier)
     t0 = time.perf_counter()
-    results = {"config": {"data": str(root), "classifier": str(classifier), "model": pipe.source, "steps": steps,
+    results = {"config": {"data": str(root), "classifier": shown_path(classifier), "model": shown_path(pipe.source),
+                          "steps": steps,
                           "cfg": cfg, "methods": methods, "edit_methods": list(edit_methods),
                           "sdedit_strengths": list(strengths), "seed": seed, "uncorrected": uncorrected}}
     if clips:
