@@ -446,6 +446,10 @@ def test_class_balance_needs_labels_and_a_valid_exponent(tiny_model, tiny_datase
     for bad in (1.5, -1.5):
         with pytest.raises(ConfigError, match=r"data.balance must be in \[-1, 1\]"):
             DenoiserTask(_balance_config(root, tiny_model, tmp_path / "b", bad), show_progress=False)
+        vae = vae_config(root, tmp_path / "v")             # the VAE draws its windows by the same rule
+        vae.data.balance = bad
+        with pytest.raises(ConfigError, match=r"data.balance must be in \[-1, 1\]"):
+            VAETask(vae)
 
 
 def test_a_run_saved_before_a_config_field_existed_resumes_at_its_default(tiny_model, tiny_dataset, tmp_path):

@@ -8,6 +8,14 @@ from ..data.dataset import MotionDataset
 from ..data.labels import content_of
 
 
+def check_balance(balance: float) -> float:
+    """data.balance as given, refused outside [-1, 1]: 1 draws as recorded, 0 every class alike, below 0
+    the rarer classes more often; beyond -1 a class of one take would crowd out the rest."""
+    if not -1.0 <= balance <= 1.0:
+        raise ConfigError(f"data.balance must be in [-1, 1], got {balance}")
+    return balance
+
+
 def dataset_content(dataset: MotionDataset) -> list[str]:
     """Each training motion's content class, from the dataset's labels.json."""
     try:
@@ -20,7 +28,7 @@ def dataset_content(dataset: MotionDataset) -> list[str]:
 def class_weights(content: list[str] | None, balance: float) -> np.ndarray | None:
     """Probability of drawing each item so that a content class with n clips is drawn in
     proportion to n**balance (None: uniform, balance = 1)."""
-    if balance == 1.0:
+    if check_balance(balance) == 1.0:
         return None
     if content is None:
         raise ConfigError(f"data.balance = {balance} draws by content class, and this data has no content "
@@ -34,7 +42,7 @@ def window_weights(dataset: MotionDataset, balance: float) -> np.ndarray | None:
     """How often the VAE draws a window from each motion: a content class with F frames in all
     in proportion to F**balance, and within it each motion by its length (None: every frame alike,
     balance = 1)."""
-    if balance == 1.0:
+    if check_balance(balance) == 1.0:
         return None
     content = dataset_content(dataset)
     lengths = np.array([len(it.features) for it in dataset.items], dtype=np.float64)

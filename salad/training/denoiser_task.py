@@ -29,7 +29,7 @@ from ..data.dataset import MotionDataset
 from ..diffusion.schedule import NoiseSchedule
 from ..models.denoiser import Denoiser
 from ..checkpoint import CheckpointError, load_state_strict
-from .balance import class_weights, dataset_content
+from .balance import check_balance, class_weights, dataset_content
 from ..models.io import load_denoiser, load_vae, save_denoiser, vae_latent_checksums, vae_latent_origin
 from ..models.widen import widen, widened_config
 from ..models.text import load_text_encoder, parse_text_encoder_spec
@@ -116,8 +116,7 @@ class DenoiserTask:
         # encode was ~15% of a step (the cache grows to ~0.4 GB on the Bandai build). Longer
         # motions get a random window, encoded each time.
         self._posteriors: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
-        if not -1.0 <= d.balance <= 1.0:
-            raise ConfigError(f"data.balance must be in [-1, 1], got {d.balance}")
+        check_balance(d.balance)        # before minutes of loading
         self.bundle = None
         self._validation: list[dict] | None = None
         if d.bundle:

@@ -27,7 +27,7 @@ from ..models.discriminator import SANDiscriminator, san_discriminator_loss, san
 from ..models.io import load_vae, save_vae, vae_latent_sources
 from ..models.vae import ENCODER_PARTS, MotionVAE, widen_decoder
 from ..motion.representation import Normalizer
-from .balance import window_weights
+from .balance import check_balance, window_weights
 from .configs import VAESANTrainConfig
 from .denoised_latents import DenoisedLatents
 from .foot_loss import velocity_errors
@@ -98,6 +98,7 @@ class VAESANTask:
 
     def __init__(self, cfg: VAESANTrainConfig, dataset: MotionDataset | None = None):
         self.cfg = cfg
+        check_balance(cfg.data.balance)
         vae, self.normalizer, self.latent_scale, _ = load_vae(cfg.vae)
         if cfg.decoder_dim and cfg.decoder_dim != vae.decoder_dim:
             if cfg.decoder_dim < vae.decoder_dim:

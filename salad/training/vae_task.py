@@ -13,7 +13,7 @@ from ..data.dataset import MotionDataset, WindowSampler
 from ..models.vae import MotionVAE
 from ..checkpoint import load_state_strict
 from ..models.io import load_vae, save_vae
-from .balance import window_weights
+from .balance import check_balance, window_weights
 from .configs import VAETrainConfig
 
 
@@ -36,6 +36,7 @@ class VAETask:
 
     def __init__(self, cfg: VAETrainConfig, dataset: MotionDataset | None = None):
         self.cfg = cfg
+        check_balance(cfg.data.balance)
         self.dataset = dataset or MotionDataset(cfg.data.root, "train", min_frames=cfg.data.min_frames,
                                                 max_frames=10 ** 9, require_captions=False)
         self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang,
