@@ -26,6 +26,9 @@ def test_command_line_overrides_win_only_where_given():
     cfg = from_dict(DenoiserTrainConfig, {"data": {"root": "a"}})
     apply_overrides(cfg, Namespace(out_dir="o", max_steps=None, data=None, threads=2))
     assert (cfg.run.out_dir, cfg.optim.max_steps, cfg.data.root, cfg.run.threads) == ("o", DenoiserTrainConfig().optim.max_steps, "a", 2)
+    assert cfg.data.balance == 1.0                                     # not given: the file's
+    apply_overrides(cfg, Namespace(balance=0.0))                       # 0 (every class alike) is a value, not "unset"
+    assert cfg.data.balance == 0.0
 
 
 CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.toml"))

@@ -241,6 +241,17 @@ def test_vae_override_only_applies_where_there_is_a_vae(tiny_dataset, tmp_path, 
     assert "--vae does not apply to a VAETrainConfig" in capsys.readouterr().err
 
 
+def test_balance_override_is_checked_and_kept_from_trainers_that_mean_otherwise(tiny_dataset, tmp_path, capsys):
+    from salad.cli import main
+
+    cfg = tmp_path / "v.toml"
+    cfg.write_text(f'[data]\nroot = "{tiny_dataset}"\n')
+    assert main(["train", "vae", "--config", str(cfg), "--balance", "-2"]) == 2
+    assert "data.balance must be in [-1, 1], got -2.0" in capsys.readouterr().err
+    assert main(["train", "classifier", "--config", str(cfg), "--balance", "0.5"]) == 2
+    assert "--balance applies to the vae, vae-san, the denoiser and consistency" in capsys.readouterr().err
+
+
 def test_devices_are_resolved_or_refused_clearly(monkeypatch):
     from salad.precision import resolve_device
 

@@ -14,6 +14,9 @@ def cmd_train(a) -> int:
         raise ValueError("--new-latents applies to a denoiser started with --init-from or --continue-from")
     if a.validate_only and (a.what != "denoiser" or not a.init_from):
         raise ValueError("--validate-only applies to a denoiser given with --init-from")
+    if a.balance is not None and a.what not in ("vae", "vae-san", "denoiser", "consistency"):
+        raise ValueError(f"--balance applies to the vae, vae-san, the denoiser and consistency, not to {a.what} "
+                         "(whose config's data.balance means something else)")
     if a.teacher and a.what != "consistency":
         raise ValueError(f"--teacher applies to consistency distillation, not to {a.what}")
     if a.what == "vae":
@@ -86,6 +89,10 @@ def add_parser(sub) -> None:
     t.add_argument("--bundle", help="denoiser, consistency: override data.bundle, a latent bundle (salad data bundle) "
                                     "to train from instead of the dataset")
     t.add_argument("--max-steps", type=int, help="override optim.max_steps")
+    t.add_argument("--balance", type=float,
+                   help="vae, vae-san, denoiser, consistency: override data.balance, how often each content class is "
+                        "drawn, as (its clip count)^balance: 1 as recorded, 0 every class alike, down to -1 the rarer "
+                        "classes more often")
     t.add_argument("--threads", type=int, help="override run.threads (CPU threads for this process)")
     t.add_argument("--device", help="override run.device: auto (default: a CUDA GPU when torch sees one, else the "
                                     "CPU), cpu, cuda or cuda:N; under torchrun each process takes its LOCAL_RANK's GPU")
