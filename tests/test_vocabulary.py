@@ -176,9 +176,10 @@ def test_the_vocabulary_keeps_each_examples_motion_length_for_a_length_prior(tin
     save_vocabulary(vocab, load_text_encoder("minilm"), model)
     pipe = load_pipeline(model)
     for (_, caption), d in zip(vocab.examples, vocab.durations):       # a caption is its own nearest example
-        assert pipe.prompt_check.length_prior(caption, k=1) == pytest.approx(d)
+        assert pipe.prompt_check.nearest_seconds(caption, k=1) == pytest.approx(d)
     prior = pipe.prompt_check.length_prior("a person walks forward")
-    assert min(vocab.durations) <= prior <= max(vocab.durations)
+    # the length net's answer, which may stray a little past the lengths it was fitted to
+    assert 0.8 * min(vocab.durations) <= prior <= 1.25 * max(vocab.durations)
     frames = pipe.frames_for("prior", "a person walks forward")
     assert frames == min(pipe.canvas_frames, int(round(prior * 20 / 4)) * 4)
     fixed = pipe.generate("a person walks forward", seconds="prior", seed=0, steps=2)
@@ -217,7 +218,7 @@ def test_auto_length_is_the_models_own_held_within_the_priors_band(tiny_model, t
     prompt = "a person walks forward"
     # the tiny data's motions outlast the tiny model's 2 s canvas; a prior inside it gives the band room
     assert pipe.auto_length_band(prompt) == (40, 40)
-    monkeypatch.setattr(pipe.prompt_check, "length_prior", lambda prompt, k=8: 1.4)
+    monkeypatch.setattr(pipe.prompt_check, "length_prior", lambda prompt: 1.4)
     lo, hi = pipe.auto_length_band(prompt)
     assert (lo, hi) == (24, 36) and pipe.frames_for("prior", prompt) == 28
     steps = 10
@@ -291,7 +292,17 @@ def test_the_length_prior_looks_among_every_training_caption_not_only_the_sample
     check = PromptCheck.load(model, encoder)
     assert check.index is not None and len(check.index.points) == len(vocab.captions)
     for caption, seconds, _ in vocab.captions:      # every caption, in the sample or not, is its own nearest
-        assert check.length_prior(caption, k=1) == pytest.approx(seconds, abs=0.01), caption
+        assert check.nearest_seconds(caption, k=1) == pytest.approx(seconds, abs=0.01), caption
+    # the length net fitted to those captions answers the prior, and reads their lengths back closely
+    assert check.index.lengths is not None
+    fitted = np.array([check.length_prior(c) / seconds for c, seconds, _ in vocab.captions])
+    assert np.mean(np.abs(fitted - 1) <= 0.2) > 0.8, fitted
+    without_net = {k: v for k, v in load_file(str(model / FEATURES_FILE)).items() if not k.startswith("length_net.")}
+    save_file(without_net, str(model / FEATURES_FILE), metadata={"encoder": json.dumps(encoder.spec(), sort_keys=True)})
+    before_net = PromptCheck.load(model, encoder)       # an index written before the net: the neighbours answer
+    assert before_net.index is not None and before_net.index.lengths is None
+    assert all(before_net.length_prior(c) == before_net.nearest_seconds(c) == check.nearest_seconds(c)
+               for c, _, _ in vocab.captions[:5])
     sample = dict((c, d) for (_, c), d in zip(vocab.examples, vocab.durations))
     # an index made by another text encoder is left out, and so is a file without one: the examples answer
     tensors = load_file(str(model / FEATURES_FILE))
@@ -303,7 +314,7 @@ def test_the_length_prior_looks_among_every_training_caption_not_only_the_sample
     old = PromptCheck.load(model, encoder)
     assert old.index is None and old._features is not None
     for caption, d in sample.items():
-        assert other.length_prior(caption, k=1) == old.length_prior(caption, k=1) == pytest.approx(d)
+        assert other.nearest_seconds(caption, k=1) == old.nearest_seconds(caption, k=1) == pytest.approx(d)
     tensors["index_seconds"][0] = -1.0                               # a damaged index is not used
     save_file(tensors, str(model / FEATURES_FILE), metadata={"encoder": json.dumps(encoder.spec(), sort_keys=True)})
     assert PromptCheck.load(model, encoder).index is None

@@ -31,7 +31,7 @@ def add_parser(sub) -> None:
                    help="output file; repeat for several formats (e.g. -o walk.mp4 -o walk.bvh)")
     g.add_argument("--seconds", default=None, help="length in seconds; 'auto' (default): the model decides (its activation channel ends "
                         "the motion) within a band around the training data's length for such prompts; 'model': the "
-                        "model alone; 'prior': as long as the training data's motions nearest to the prompt")
+                        "model alone; 'prior': the length the training data gives such prompts (the length prior)")
     g.add_argument("--seed", type=int, default=0)
     add_sampling(g)
     g.add_argument("--batch", type=int, default=1, help="motions to generate (files get a _k suffix)")

@@ -6,7 +6,8 @@ styles, and every word its captions use. It ships beside the model (vocabulary.j
 samples' text-encoder features in vocabulary.safetensors so that loading encodes nothing). Beside the
 sample, vocabulary.safetensors holds a caption index: every distinct training caption, reduced to a few
 principal components of the text encoder's space, with the length and root speed of its motions, which
-the length prior and the in-place test look up.
+the in-place test looks up, and a net fitted to those lengths, which gives the length prior
+(salad.models.length_net).
 
 A prompt far from everything trained is still answered, with the nearest thing the model knows;
 `PromptCheck.warnings` says so instead of letting it pass silently.
@@ -30,14 +31,16 @@ from ..data.dataset import read_captions, read_split
 from ..data.labels import read_labels
 from ..motion.representation import FPS
 from ..files import atomic_path, atomic_write_text
+from .length_net import LengthNet
 from .text import TextEncoder, split_words
 
 VOCABULARY_FILE = "vocabulary.json"
 FEATURES_FILE = "vocabulary.safetensors"
 EXAMPLES_PER_ACTION = 24
-# captions whose motions' lengths the length prior takes the median of, nearest to the prompt first
+# captions whose motions' speeds (the in-place test) and lengths (nearest_seconds, the length prior of an index
+# without a length net) are taken the median of, nearest to the prompt first
 LENGTH_NEIGHBOURS = 8
-# The length prior and the in-place test look the prompt up among every distinct training caption (41,484
+# The neighbours' lengths and the in-place test look the prompt up among every distinct training caption (41,484
 # on Bandai), not among the 24-per-action sample: the sample holds one or two captions per style of an
 # action, so a manner word finds other actions' captions of the same shape first (an exhausted straight
 # walk took its length from exhausted turns, 4 s against 9 real). Validation split, every caption of every
@@ -214,6 +217,8 @@ class CaptionIndex:
     points: torch.Tensor      # (n, k), unit length
     seconds: torch.Tensor     # (n,)
     speeds: torch.Tensor      # (n,)
+    # points -> seconds, fitted to these captions (the length prior); None in indexes written before it
+    lengths: LengthNet | None = None
 
     @classmethod
     def build(cls, features: torch.Tensor, seconds, speeds) -> "CaptionIndex":
@@ -224,15 +229,17 @@ class CaptionIndex:
         mean, basis = mean.float(), vectors[:, -min(INDEX_DIMS, len(features)):].flip(-1).float().contiguous()
         # the points as stored (fp16), so a built index answers as the one read back
         points = _project(features, mean, basis).half().float()
-        return cls(mean, basis, points, torch.tensor(seconds, dtype=torch.float32),
-                   torch.tensor(speeds, dtype=torch.float32))
+        seconds = torch.tensor(seconds, dtype=torch.float32)
+        return cls(mean, basis, points, seconds, torch.tensor(speeds, dtype=torch.float32),
+                   LengthNet.fit(points, seconds))
 
     def project(self, features: torch.Tensor) -> torch.Tensor:
         return _project(features, self.mean, self.basis)
 
     def tensors(self) -> dict[str, torch.Tensor]:
         return {"index_mean": self.mean, "index_basis": self.basis, "index_points": self.points.half(),
-                "index_seconds": self.seconds, "index_speeds": self.speeds}
+                "index_seconds": self.seconds, "index_speeds": self.speeds,
+                **(self.lengths.tensors() if self.lengths is not None else {})}
 
     @classmethod
     def from_tensors(cls, t: dict[str, torch.Tensor], dim: int) -> "CaptionIndex | None":
@@ -247,7 +254,10 @@ class CaptionIndex:
         fits = (index.mean.shape == (dim,) and index.basis.shape == (dim, k) and index.seconds.shape == (n,)
                 and index.speeds.shape == (n,) and n > 0 and bool(torch.all(index.seconds > 0))
                 and bool(torch.all(index.speeds >= 0)))
-        return index if fits else None
+        if not fits:
+            return None
+        index.lengths = LengthNet.from_tensors(t, k)
+        return index
 
 
 class PromptCheck:
@@ -326,9 +336,16 @@ class PromptCheck:
         nearest = torch.topk(sims, min(k, len(values))).indices
         return float(np.median(values[nearest].numpy()))
 
-    def length_prior(self, prompt: str, k: int = LENGTH_NEIGHBOURS) -> float | None:
-        """Seconds a motion for `prompt` lasts in the training data: the median length of the motions of
-        the `k` training captions nearest to it (None when the vocabulary keeps no lengths)."""
+    def length_prior(self, prompt: str) -> float | None:
+        """Seconds a motion for `prompt` lasts in the training data: the caption index's length net where it has
+        one, else nearest_seconds (None when the vocabulary keeps no lengths)."""
+        if self.index is not None and self.index.lengths is not None:
+            return float(self.index.lengths(self.index.project(self._query(prompt)[None]))[0])
+        return self.nearest_seconds(prompt)
+
+    def nearest_seconds(self, prompt: str, k: int = LENGTH_NEIGHBOURS) -> float | None:
+        """The median length of the motions of the `k` training captions nearest to `prompt` (None when the
+        vocabulary keeps no lengths)."""
         return self._nearest_median(prompt, "seconds", k)
 
     def in_place(self, prompt: str, k: int = LENGTH_NEIGHBOURS) -> bool | None:
