@@ -129,6 +129,7 @@ def test_cli_writes_the_vocabulary_and_generate_prints_warnings(tiny_model, tiny
     code, err = cli("data", "vocabulary", str(tiny_dataset), "--model", str(model))
     assert code == 0, err
     assert (model / VOCABULARY_FILE).is_file() and (model / FEATURES_FILE).is_file()
+    assert "fitting the length net" in err, "a step of minutes on real data says what it is doing"
     code, err = cli("generate", "a person does a cartwheel", "-o", str(tmp_path / "c.npy"), "--model", str(model),
                     "--steps", "2", "--seconds", "1")
     assert code == 0, err
@@ -149,6 +150,7 @@ def test_cli_writes_the_vocabulary_and_generate_prints_warnings(tiny_model, tiny
     from salad.models.text import load_text_encoder
     check = PromptCheck.load(model, load_text_encoder("minilm"))
     assert check._features.shape[0] == 1 and len(check.index.points) == len(build_vocabulary(tiny_dataset).captions)
+    assert check.index.lengths is not None
     bare = tmp_path / "bare"
     shutil.copytree(tiny_model, bare)
     (bare / VOCABULARY_FILE).unlink(missing_ok=True)

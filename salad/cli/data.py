@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 
@@ -67,6 +68,9 @@ def cmd_data_vocabulary(a) -> int:
     if kept is not None:
         kept.captions = vocab.captions
         vocab = kept
+    if vocab.captions:
+        print(f"encoding {len(vocab.captions)} captions and fitting the length net to their lengths "
+              "(minutes on a CPU)", file=sys.stderr)
     path = save_vocabulary(vocab, load_text_encoder(doc["config"]["text_encoder"]), model)
     print(f"wrote {path}: {len(vocab.actions)} actions, {len(vocab.examples)} example captions, "
           f"{len(vocab.words)} words, {len(vocab.captions)} captions in the length index, "

@@ -6,8 +6,8 @@ his right hand" are pointing gestures, 2.2 s against guiding's 5 s), and a regre
 caption generalises further. Every caption of the Bandai validation and test splits against its own motion's
 length, within +-35%: 0.94 and 0.96 of them with the net, 0.90 and 0.90 with the neighbours. It is an ensemble
 of MEMBERS small MLPs, each fitted to log seconds with an L1 loss (a median, as the neighbours gave) from its
-own seed, their log predictions averaged (single members scored 0.933-0.944 on validation, so four steady
-it); width and epochs were chosen on the validation split.
+own seed, their log predictions averaged (single members scored 0.933-0.944 on validation; four average out
+the seed); width and epochs were chosen on the validation split.
 """
 from __future__ import annotations
 

@@ -40,7 +40,7 @@ EXAMPLES_PER_ACTION = 24
 # captions whose motions' speeds (the in-place test) and lengths (nearest_seconds, the length prior of an index
 # without a length net) are taken the median of, nearest to the prompt first
 LENGTH_NEIGHBOURS = 8
-# The neighbours' lengths and the in-place test look the prompt up among every distinct training caption (41,484
+# The neighbours' lengths and the in-place test look the prompt up among every distinct training caption (41,420
 # on Bandai), not among the 24-per-action sample: the sample holds one or two captions per style of an
 # action, so a manner word finds other actions' captions of the same shape first (an exhausted straight
 # walk took its length from exhausted turns, 4 s against 9 real). Validation split, every caption of every
