@@ -6,7 +6,8 @@ and precision (fp32, bf16) it times text -> joints for a 6 s motion (120 frames,
 that peak memory is that configuration's own. It also measures this machine's matmul
 peak in the same run, the denoiser's achieved GFLOP/s, DPM-Solver++ against DDIM at
 matched accuracy, the consistency student's 1-4 step sampling beside a fixed matmul
-reference (50 fp32 1024x1024 matmuls), and a profile of where the time goes.
+reference (50 fp32 1024x1024 matmuls), the student and DDIM-50 again with the networks compiled
+(Pipeline.compile), and a profile of where the time goes.
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ import torch
 SECONDS = 6.0   # 120 frames
 CONSISTENCY_STEPS = (1, 2, 4)
 CONSISTENCY_TARGET_MS = 60.0   # per 6 s motion, fp32, batch 1
+PROMPT = "a person walks forward and waves their right hand"
 
 
 def matmul_peak(dtype: torch.dtype, n: int = 2048, repeats: int = 5) -> float:
@@ -102,14 +104,8 @@ def run_one(model: str, bf16: bool, batch: int, sampler: str = "ddim", steps: in
         return {"skipped": "bf16 is not supported on this CPU"}
     if sampler == "consistency" and pipe.student is None:
         return {"skipped": "the model has no consistency student"}
-    prompt = "a person walks forward and waves their right hand"
-    pipe.generate(prompt, seconds=seconds, steps=2, sampler=sampler, batch=batch)      # warm-up: caches, kernels
-    times = []
-    for r in range(repeats):
-        t = time.perf_counter()
-        pipe.generate(prompt, seconds=seconds, seed=r, steps=steps, sampler=sampler, batch=batch)
-        times.append(time.perf_counter() - t)
-    best = min(times)
+    pipe.generate(PROMPT, seconds=seconds, steps=2, sampler=sampler, batch=batch)      # warm-up: caches, kernels
+    best = _best_time(pipe, sampler, steps, batch, repeats, seconds)
     flops = _denoiser_flops(pipe, batch, seconds, sampler) * steps
     return {"model": model, "precision": "bf16" if bf16 else "fp32", "batch": batch, "sampler": sampler,
             "timed": "sampling and one decode (no latent projection, no planted-feet refinement)",
@@ -120,6 +116,34 @@ def run_one(model: str, bf16: bool, batch: int, sampler: str = "ddim", steps: in
             "params_m": sum(p.numel() for p in pipe.denoiser.parameters()) / 1e6}
 
 
+def _best_time(pipe, sampler: str, steps: int, batch: int, repeats: int, seconds: float) -> float:
+    times = []
+    for r in range(repeats):
+        t = time.perf_counter()
+        pipe.generate(PROMPT, seconds=seconds, seed=r, steps=steps, sampler=sampler, batch=batch)
+        times.append(time.perf_counter() - t)
+    return min(times)
+
+
+def run_compiled(repeats: int = 5, seconds: float = SECONDS) -> dict:
+    """The embedded model's student rows (CONSISTENCY_STEPS) and DDIM-50 after Pipeline.compile, fp32,
+    batch 1, in this process (called in a subprocess by `bench`): the first call pays the compiling."""
+    pipe = _load("embedded", False)
+    pipe.compile()
+    first = {}
+    for sampler in (("consistency",) if pipe.student is not None else ()) + ("ddim",):
+        t = time.perf_counter()
+        pipe.generate(PROMPT, seconds=seconds, steps=2, sampler=sampler)
+        first[sampler] = time.perf_counter() - t
+    rows = [{"sampler": "consistency", "steps": k,
+             "ms_per_motion": 1000 * _best_time(pipe, "consistency", k, 1, repeats, seconds)}
+            for k in (CONSISTENCY_STEPS if pipe.student is not None else ())]
+    rows.append({"sampler": "ddim", "steps": 50,
+                 "ms_per_motion": 1000 * _best_time(pipe, "ddim", 50, 1, min(repeats, 3), seconds)})
+    return {"first_call_s": first, "rows": rows, "timed": "as the uncompiled rows, after a first call per sampler "
+            "that compiled the networks it runs (first_call_s, a 2-step generation included)"}
+
+
 def solver_accuracy(model: str, bf16: bool, seeds: int = 4, ddim_steps=(10, 20, 50), dpm_steps=(5, 8, 10, 15, 20, 25, 30, 40),
                     reference_steps: int = 250) -> dict:
     """Mean joint error (m) of each sampler setting against a 250-step DDIM solution of the
@@ -127,11 +151,10 @@ def solver_accuracy(model: str, bf16: bool, seeds: int = 4, ddim_steps=(10, 20, 
     import numpy as np
     pipe = _load(model, bf16)
     pipe.set_sampling(ddim_eta=0.0, cfg_cutoff=0.0)   # the solvers of one smooth ODE, as measured before
-    prompt = "a person walks forward and waves their right hand"
-    ref = [pipe.generate(prompt, seconds=SECONDS, seed=s, steps=reference_steps).joints for s in range(seeds)]
+    ref = [pipe.generate(PROMPT, seconds=SECONDS, seed=s, steps=reference_steps).joints for s in range(seeds)]
 
     def err(sampler, steps):
-        out = [pipe.generate(prompt, seconds=SECONDS, seed=s, steps=steps, sampler=sampler).joints
+        out = [pipe.generate(PROMPT, seconds=SECONDS, seed=s, steps=steps, sampler=sampler).joints
                for s in range(seeds)]
         return float(np.mean([np.linalg.norm(o - r, axis=-1).mean() for o, r in zip(out, ref)]))
 
@@ -191,6 +214,7 @@ def bench(out: Path, models=("embedded", "paper"), batches=(1, 16), quick: bool 
         report["consistency"] = [_subprocess("run_one", model="embedded", bf16=False, batch=1, sampler="consistency",
                                              steps=k, repeats=1 if quick else 5, seconds=seconds)
                                  for k in CONSISTENCY_STEPS]
+        report["compiled"] = _subprocess("run_compiled", repeats=1 if quick else 5, seconds=seconds)
     if "embedded" in models:
         acc = _subprocess("solver_accuracy", model="embedded", bf16=False, seeds=2 if quick else 4)
         report["solver_accuracy"] = acc
@@ -250,6 +274,20 @@ def format_table(report: dict) -> str:
         met = "meets" if r["ms_per_motion"] <= CONSISTENCY_TARGET_MS else "misses"
         vs = f", {r['ms_per_motion'] / ref:.2f}x the matmul reference" if ref else ""
         lines.append(f"  {r['steps']} step(s): {r['ms_per_motion']:.0f} ms/motion{vs} ({met} the target)")
+    compiled = report.get("compiled")
+    if compiled:
+        lines += ["", "compiled (Pipeline.compile, salad --compile; embedded, fp32, batch 1):"]
+        if "rows" not in compiled:
+            lines.append(f"  {compiled.get('error')}")
+        else:
+            lines.append("  first call, compiling included: " + ", ".join(
+                f"{k} {v:.0f} s" for k, v in compiled["first_call_s"].items()))
+            for r in compiled["rows"]:
+                met = ""
+                if r["sampler"] == "consistency":
+                    met = " (meets the target)" if r["ms_per_motion"] <= CONSISTENCY_TARGET_MS else " (misses the target)"
+                vs = f", {r['ms_per_motion'] / ref:.2f}x the matmul reference" if ref else ""
+                lines.append(f"  {r['sampler']} {r['steps']} step(s): {r['ms_per_motion']:.0f} ms/motion{vs}{met}")
     prof = report.get("profile_embedded_fp32_batch1")
     if isinstance(prof, list):
         lines += ["", "where the time goes (embedded, fp32, batch 1, 50 steps):"]

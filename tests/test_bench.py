@@ -44,3 +44,19 @@ def test_bench_out_takes_a_file_or_a_directory_as_the_eval_commands_do(tmp_path)
     assert report_path(str(tmp_path / "reports" / "bench-1")) == tmp_path / "reports" / "bench-1" / "bench.json"
     (tmp_path / "odd.json").mkdir()            # a directory that happens to end in .json is still a directory
     assert report_path(str(tmp_path / "odd.json")) == tmp_path / "odd.json" / "bench.json"
+
+
+def test_the_table_shows_the_compiled_rows_against_the_target():
+    report = {"machine": {"matmul_peak_gflop_s": {"fp32": 100.0, "bf16": None}, "cores": 2, "matmul_1024_x50_ms": 500.0},
+              "motion": {"seconds": 6.0}, "runs": [],
+              "compiled": {"first_call_s": {"consistency": 20.0, "ddim": 15.0},
+                           "rows": [{"sampler": "consistency", "steps": 4, "ms_per_motion": 64.6},
+                                    {"sampler": "consistency", "steps": 2, "ms_per_motion": 43.3},
+                                    {"sampler": "ddim", "steps": 50, "ms_per_motion": 706.0}]}}
+    table = format_table(report)
+    assert "first call, compiling included: consistency 20 s, ddim 15 s" in table
+    assert "consistency 4 step(s): 65 ms/motion, 0.13x the matmul reference (misses the target)" in table
+    assert "consistency 2 step(s): 43 ms/motion, 0.09x the matmul reference (meets the target)" in table
+    assert "ddim 50 step(s): 706 ms/motion, 1.41x the matmul reference\n" in table + "\n"
+    report["compiled"] = {"error": "RuntimeError: no C compiler"}
+    assert "RuntimeError: no C compiler" in format_table(report)

@@ -231,3 +231,46 @@ def test_a_sampler_started_part_of_the_way_down_finishes_as_the_whole_run_would(
             pipe.denoise(text, noise, "ddim", 10, 7.5, auto=False, start=bad)
     with pytest.raises(ValueError, match="only the ddim sampler"):
         pipe.denoise(text, noise, "dpm", 10, 7.5, auto=False, start=2)
+
+
+def test_compiled_networks_give_the_eager_motions_and_step_aside_for_controllers(tiny_student):
+    import torch._dynamo
+
+    pipe = load_pipeline(tiny_student, bf16=False)
+    pipe.set_foot_refine(0)        # its line search would magnify the last digits compiled kernels round differently
+    with pytest.raises(ValueError, match="cannot compile 'text'"):
+        pipe.compile(("denoiser", "text"))
+    assert pipe.compiled == {}
+    # the teacher's guided steps run 2 rows, its unguided last ones 1, at another length than the student's
+    calls = [("a person walks forward", dict(seconds=1.6, steps=3, sampler="consistency")),
+             ("a person walks forward", dict(seconds=1.2, steps=4, sampler="ddim"))]
+    eager = [pipe.generate(prompt, **kw) for prompt, kw in calls]
+    watched = pipe.generate("a person waves", seconds=1.2, steps=2, sampler="consistency", return_attention=True)
+
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    pipe.compile()
+    assert set(pipe.compiled) == {"denoiser", "student", "decoder"}
+    for (prompt, kw), before in zip(calls, eager):
+        after = pipe.generate(prompt, **kw)
+        assert after.frames == before.frames
+        np.testing.assert_allclose(after.joints, before.joints, atol=1e-3)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 3, "the compiled networks did not run"
+    # an observed sampling runs the eager modules, whose maps the store reads
+    again = pipe.generate("a person waves", seconds=1.2, steps=2, sampler="consistency", return_attention=True)
+    np.testing.assert_allclose(again.attention.data, watched.attention.data, atol=1e-4)
+    np.testing.assert_allclose(again.joints, watched.joints, atol=1e-3)
+
+
+def test_the_compile_flag_reaches_the_pipeline(tiny_model):
+    from salad.cli import build_parser
+    from salad.cli.common import apply_sampling
+
+    parser = build_parser()
+    for argv in (["generate", "a person walks", "-o", "w.npy"],
+                 ["control", "a person walks", "--path-preset", "circle", "-o", "w.npy"]):
+        pipe = load_pipeline(tiny_model)
+        apply_sampling(pipe, parser.parse_args(argv))
+        assert pipe.compiled == {}
+        apply_sampling(pipe, parser.parse_args(argv + ["--compile"]))
+        assert set(pipe.compiled) == {"denoiser", "decoder"}          # the tiny model has no student

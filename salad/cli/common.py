@@ -64,7 +64,7 @@ SAMPLER_HELP = {"ddim": "DDIM, the paper's sampler", "dpm": "DPM-Solver++",
 
 def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SAMPLER_CHOICES,
                  teacher_options: bool = True) -> None:
-    """--steps, --cfg and --sampler, for every command that samples; with teacher_options also
+    """--steps, --cfg, --sampler and --compile, for every command that samples; with teacher_options also
     --ddim-eta, --cfg-rescale and --cfg-cutoff, --projections and --foot-refine (set on the pipeline with
     apply_sampling)."""
     parser.add_argument("--steps", type=int, default=None,
@@ -73,6 +73,10 @@ def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SA
                         help="classifier-free guidance scale (the consistency student takes the range it learnt)")
     parser.add_argument("--sampler", choices=samplers, default="ddim",
                         help="; ".join(f"{k}: {SAMPLER_HELP[k]}" for k in samplers))
+    parser.add_argument("--compile", action="store_true",
+                        help="torch.compile the networks the sampling runs (Pipeline.compile): 10-40 s of "
+                             "compiling first, then about a quarter off each forward on a CPU; worth it for "
+                             "batches and evaluations, not for one motion")
     if teacher_options:
         parser.add_argument("--ddim-eta", type=float, default=None,
                             help="fresh noise DDIM adds at each step, 0-1 (default 1; 0: the paper's deterministic "
@@ -94,13 +98,15 @@ def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SA
 
 
 def apply_sampling(pipe, a) -> None:
-    """The command's --ddim-eta, --cfg-rescale, --cfg-cutoff, --projections and --foot-refine, checked, on
-    the pipeline."""
+    """The command's --ddim-eta, --cfg-rescale, --cfg-cutoff, --projections, --foot-refine and --compile,
+    checked, on the pipeline."""
     pipe.set_sampling(getattr(a, "ddim_eta", None), getattr(a, "cfg_rescale", None), getattr(a, "cfg_cutoff", None))
     if getattr(a, "projections", None) is not None:
         pipe.set_projections(a.projections)
     if getattr(a, "foot_refine", None) is not None:
         pipe.set_foot_refine(a.foot_refine)
+    if getattr(a, "compile", False):
+        pipe.compile()
 
 
 def add_bvh_units(parser: argparse.ArgumentParser) -> None:

@@ -10,7 +10,7 @@ from ..motion.control import (PATH_PRESETS, ControlSignal, control_errors, crop_
                              read_targets)
 from ..motion.motion import check_output_paths
 from ..motion.representation import FPS
-from .common import add_bvh_units, add_device, add_sampling, device_of, print_warnings, progress_bar
+from .common import add_bvh_units, add_device, add_sampling, apply_sampling, device_of, print_warnings, progress_bar
 
 DEFAULT_PATH_SECONDS = 5.0
 SOURCES = ("path", "path_preset", "mola", "targets", "keyframes", "lower_body_from")
@@ -107,6 +107,7 @@ def cmd_control(a) -> int:
         print("note: generated motions start at the origin; this path starts "
               f"{math.hypot(sig.targets[0, 0, 0], sig.targets[0, 0, 2]):.2f} m away from it")
     pipe = load_pipeline(a.model, bf16=not a.fp32, device=device)
+    apply_sampling(pipe, a)
     if sig.frames > pipe.canvas_frames:
         raise ValueError(f"the control signal spans {sig.frames} frames ({sig.frames / FPS:g} s); the model makes at "
                          f"most {pipe.canvas_frames} ({pipe.max_seconds:g} s): pass a shorter --seconds")

@@ -109,6 +109,7 @@ def cmd_edit_real(a) -> int:
     if a.side_by_side and Path(a.side_by_side).suffix.lower() != ".mp4":
         raise ValueError(f"{a.side_by_side}: unsupported output type for --side-by-side; use .mp4")
     pipe = load_pipeline(a.model, device=device)
+    apply_sampling(pipe, a)
     pipe.check_edit(a.source, spec)
     steps, cfg, _, _ = pipe.check_sampling(a.steps, a.cfg, a.sampler)
     from ..diffusion.inversion import METHODS
