@@ -297,10 +297,12 @@ def merge_joints(parts: list[torch.Tensor]) -> torch.Tensor:
     if len(parts) != sk.NUM_JOINTS:
         raise ValueError(f"expected {sk.NUM_JOINTS} joint feature tensors, got {len(parts)}")
     cat = torch.cat(parts, dim=-1)
-    order = torch.tensor([i for g in joint_feature_indices() for i in g], device=cat.device)
-    out = torch.empty_like(cat)
-    out[..., order] = cat
-    return out
+    return cat[..., torch.tensor(_MERGED_POSITIONS, device=cat.device)]
+
+
+# where each of the 263 channels lies in the joints' parts concatenated; a plain tuple, which torch.compile (of the
+# decoder) reads as a constant
+_MERGED_POSITIONS = tuple(sorted(range(FEATURE_DIM), key=[i for g in joint_feature_indices() for i in g].__getitem__))
 
 
 # ---------------------------------------------------------------- mirroring
