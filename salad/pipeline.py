@@ -92,7 +92,7 @@ STILL_FEET_MPS = 0.1
 CONTROL_FEET_TARGETS = 0.1
 DEFAULT_STEPS = {"ddim": 50, "dpm": 50, "consistency": 4}
 # What Pipeline.compile can hand to torch.compile. On a 2-core AVX2 CPU (session 48) it took a 4-step generation
-# from 77-85 to 65-68 ms and DDIM-50 from 0.89-0.99 to 0.71-0.74 s, for 16-69 s of compiling at the first call;
+# from 73-85 to 62-68 ms and DDIM-50 from 0.88-0.99 to 0.71-0.75 s, for 16-69 s of compiling at the first call;
 # off by default, as the studio's samplings mostly run observed (eager) and one-off commands would not repay it.
 COMPILABLE = ("denoiser", "student", "decoder")
 # what a student can be measured fit for (meta.consistency.default_for, Pipeline.student_preferred)
