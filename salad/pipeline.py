@@ -151,7 +151,7 @@ class Pipeline:
         the denoiser and the student wherever no attention controller observes them and no gradient is
         taken (sampling for generate, control and the benchmarks; edits and the attention explorer stay
         eager), and the VAE's decoder for the decode after sampling. Each compiles at its first call and may
-        compile again for a new batch size (on a 2-core CPU 10-40 s each); the results match the eager
+        compile again for a new batch size (on a 2-core CPU 15-70 s in all); the results match the eager
         modules' to float rounding. It needs a C compiler (inductor's CPU code)."""
         unknown = [p for p in parts if p not in COMPILABLE]
         if unknown:
@@ -363,9 +363,9 @@ class Pipeline:
         def run(x: torch.Tensor, t: torch.Tensor, rows: slice, mask: torch.Tensor | None) -> torch.Tensor:
             with self.autocast():
                 flags = torch.full((x.shape[0],), auto, device=x.device)
-                return self._network_call("denoiser")(x, t, text.tokens[rows], text.mask[rows], mask,
-                                     pooled_text=None if text.pooled is None else text.pooled[rows],
-                                     auto_length=flags).float()
+                return self._network_call("denoiser")(
+                    x, t, text.tokens[rows], text.mask[rows], mask,
+                    pooled_text=None if text.pooled is None else text.pooled[rows], auto_length=flags).float()
 
         def fn(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
             return run(x, t, slice(None), rows_mask)
@@ -407,8 +407,8 @@ class Pipeline:
             with self.autocast():
                 flags = torch.full((x.shape[0],), auto, device=x.device)
                 w = torch.full((x.shape[0],), float(cfg), device=x.device)
-                return self._network_call("student")(x, t, text.tokens, text.mask, frame_mask, pooled_text=text.pooled,
-                                    auto_length=flags, guidance=w).float()
+                return self._network_call("student")(x, t, text.tokens, text.mask, frame_mask,
+                                                     pooled_text=text.pooled, auto_length=flags, guidance=w).float()
         return fn
 
     def denoise(self, text, noise: torch.Tensor, sampler: str, steps: int, cfg: float, auto: bool,
