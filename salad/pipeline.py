@@ -151,7 +151,7 @@ class Pipeline:
         the denoiser and the student wherever no attention controller observes them and no gradient is
         taken (sampling for generate, control and the benchmarks; edits and the attention explorer stay
         eager), and the VAE's decoder for the decode after sampling. Each compiles at its first call and may
-        compile again for a new batch size (on a 2-core CPU 15-70 s in all); the results match the eager
+        compile again for a new batch size (on a 2-core CPU 16-69 s in all); the results match the eager
         modules' to float rounding. It needs a C compiler (inductor's CPU code)."""
         unknown = [p for p in parts if p not in COMPILABLE]
         if unknown:

@@ -74,7 +74,7 @@ def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SA
     parser.add_argument("--sampler", choices=samplers, default="ddim",
                         help="; ".join(f"{k}: {SAMPLER_HELP[k]}" for k in samplers))
     parser.add_argument("--compile", action="store_true",
-                        help="torch.compile the networks the sampling runs (Pipeline.compile): 15-70 s of "
+                        help="torch.compile the networks the sampling runs (Pipeline.compile): 16-69 s of "
                              "compiling first, then about a sixth less time per motion on a CPU; worth it for "
                              "batches and evaluations, not for one motion")
     if teacher_options:
