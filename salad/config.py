@@ -46,6 +46,24 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
     return cls(**kwargs)
 
 
+def require(ok: bool, where: str, name: str, rule: str, value) -> None:
+    """A config's range rule: ConfigError "<where><name> must be <rule>, got <value>" unless ok."""
+    if not ok:
+        raise ConfigError(f"{where}{name} must be {rule}, got {value!r}")
+
+
+def validate(cfg, where: str = "") -> None:
+    """Check a config's values against the ranges its dataclasses state (their `check(where)`), nested
+    tables included, so that a bad value stops a run at its start rather than minutes or hours into it."""
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            validate(value, f"{where}{f.name}.")
+    check = getattr(cfg, "check", None)
+    if check is not None:
+        check(where)
+
+
 def to_dict(obj) -> dict[str, Any]:
     return dataclasses.asdict(obj)
 
@@ -58,12 +76,17 @@ def load_toml(cls: type[T], path: str | Path) -> T:
         raise ConfigError(f"{path}: config file not found") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: invalid TOML ({e})") from None
-    return from_dict(cls, data, str(path))
+    cfg = from_dict(cls, data, str(path))
+    try:
+        validate(cfg)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+    return cfg
 
 
 def apply_overrides(cfg, args) -> None:
     """The command line's --out-dir, --max-steps, --data, --bundle, --balance, --threads, --device and --vae, where
-    given, win over the file."""
+    given, win over the file; the result is validated again."""
     for flag, section, name in (("out_dir", "run", "out_dir"), ("max_steps", "optim", "max_steps"),
                                 ("data", "data", "root"), ("bundle", "data", "bundle"), ("balance", "data", "balance"),
                                 ("threads", "run", "threads"), ("device", "run", "device"),
@@ -75,3 +98,4 @@ def apply_overrides(cfg, args) -> None:
         if not hasattr(target, name):
             raise ConfigError(f"--{flag.replace('_', '-')} does not apply to a {type(cfg).__name__}")
         setattr(target, name, value)
+    validate(cfg)

@@ -54,3 +54,49 @@ def test_every_shipped_config_loads_with_the_command_its_header_names(path):
     cfg = load_toml(_config_class(found.group(1)), path)
     if isinstance(cfg, DenoiserTrainConfig):
         Denoiser(cfg.model)      # widths that do not fit one another fail here, not hours into a run
+
+
+@pytest.mark.parametrize("table, key, value, message", [
+    ("optim", "batch_size", "0", "optim.batch_size must be >= 1, got 0"),
+    ("optim", "lr", "-1e-4", "optim.lr must be > 0"),
+    ("optim", "milestones", "[500, 100]", "optim.milestones must be ascending positive step counts"),
+    ("run", "log_every", "0", "run.log_every must be >= 1, got 0"),
+    ("data", "window", "30", "data.window must be a multiple of 4"),
+    ("data", "min_frames", "400", "data.min_frames must be in 1..max_frames (196)"),
+    (None, "text_dropout", "1.5", "text_dropout must be in [0, 1], got 1.5"),
+])
+def test_a_value_out_of_range_names_its_file_and_field_when_the_config_loads(tmp_path, table, key, value, message):
+    # Without the rules these ran: a zero log_every or batch size failed at the first step, after
+    # minutes of loading data and text features; a dropout of 1.5 trained a model that never saw a caption.
+    path = tmp_path / "bad.toml"
+    path.write_text(f"[{table}]\n{key} = {value}\n" if table else f"{key} = {value}\n")
+    with pytest.raises(ConfigError) as caught:
+        load_toml(DenoiserTrainConfig, path)
+    assert str(caught.value).startswith(f"{path}: ") and message in str(caught.value)
+
+
+def test_overrides_and_configs_built_in_code_are_held_to_the_same_rules(tmp_path):
+    from salad.training.configs import OptimConfig, RunConfig
+    from salad.training.loop import Trainer
+
+    cfg = from_dict(DenoiserTrainConfig, {})
+    with pytest.raises(ConfigError, match="optim.max_steps must be >= 1, got -5"):
+        apply_overrides(cfg, Namespace(max_steps=-5))
+    with pytest.raises(ConfigError, match="run.threads must be >= 0"):
+        apply_overrides(from_dict(DenoiserTrainConfig, {}), Namespace(threads=-2))
+    # a trainer refuses them before it touches the task (here: none at all) or the run directory
+    with pytest.raises(ConfigError, match="optim.grad_clip must be >= 0"):
+        Trainer(None, OptimConfig(grad_clip=-1.0), RunConfig(out_dir=str(tmp_path / "run")))
+    with pytest.raises(ConfigError, match="run.checkpoint_every must be >= 1"):
+        Trainer(None, OptimConfig(), RunConfig(out_dir=str(tmp_path / "run"), checkpoint_every=0))
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_command_line_reports_a_bad_config_without_starting(tiny_dataset, tmp_path, capsys):
+    from salad.cli import main
+
+    cfg = tmp_path / "v.toml"
+    cfg.write_text(f'[data]\nroot = "{tiny_dataset}"\n[run]\nout_dir = "{tmp_path / "run"}"\ncheckpoint_every = 0\n')
+    assert main(["train", "vae", "--config", str(cfg)]) == 2
+    assert "run.checkpoint_every must be >= 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()

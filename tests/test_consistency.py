@@ -222,7 +222,8 @@ def test_distillation_config_errors_are_clear(tiny_model, tiny_dataset, tmp_path
     from salad.cli import main
 
     for extra, message in (('target = "progressive"', "target must be one of lcd, trajectory"),
-                           ("replay = 0", "replay >= 1"), ("cfg_cutoff = 1.0", "cfg_cutoff in [0, 1)")):
+                           ("replay = 0", "replay must be >= 1"),
+                           ("cfg_cutoff = 1.0", "cfg_cutoff must be in [0, 1)")):
         cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra)
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
         assert message in capsys.readouterr().err

@@ -6,14 +6,7 @@ import numpy as np
 from ..config import ConfigError
 from ..data.dataset import MotionDataset
 from ..data.labels import content_of
-
-
-def check_balance(balance: float) -> float:
-    """data.balance as given, refused outside [-1, 1]: 1 draws as recorded, 0 every class alike, below 0
-    the rarer classes more often; beyond -1 a class of one take would crowd out the rest."""
-    if not -1.0 <= balance <= 1.0:
-        raise ConfigError(f"data.balance must be in [-1, 1], got {balance}")
-    return balance
+from .configs import check_balance
 
 
 def dataset_content(dataset: MotionDataset) -> list[str]:

@@ -19,7 +19,7 @@ import torch
 import torch.nn as nn
 
 from ..files import atomic_write_text
-from ..config import apply_overrides, load_toml, to_dict
+from ..config import apply_overrides, load_toml, to_dict, validate
 from ..data.dataset import MotionDataset, load_normalizer
 from .configs import OptimConfig, RunConfig
 from ..eval.classifiers import HEADS, KIND, Classifier, ClassifierConfig, MotionClassifier, load_classifier, save_classifier
@@ -89,6 +89,7 @@ class ClassifierTask:
     kind = KIND
 
     def __init__(self, cfg: ClassifierTrainConfig):
+        validate(cfg)
         self.cfg = cfg
         d = cfg.data
         self.normalizer = load_normalizer(d.root)

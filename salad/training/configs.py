@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from ..config import require
 from ..diffusion.schedule import DiffusionConfig
 from ..models.denoiser import DenoiserConfig
 from ..models.discriminator import DiscriminatorConfig
@@ -25,6 +26,21 @@ class DataConfig:
     # instead of root's features and the text encoder, e.g. on a GPU machine the dataset cannot reach
     bundle: str = ""
 
+    def check(self, where: str = "") -> None:
+        require(self.window >= 4 and self.window % 4 == 0, where, "window", "a multiple of 4 from 4 on", self.window)
+        require(self.max_frames >= 4 and self.max_frames % 4 == 0, where, "max_frames", "a multiple of 4 from 4 on",
+                self.max_frames)
+        require(1 <= self.min_frames <= self.max_frames, where, "min_frames", f"in 1..max_frames ({self.max_frames})",
+                self.min_frames)
+        check_balance(self.balance, where)
+
+
+def check_balance(balance: float, where: str = "data.") -> float:
+    """data.balance as given, refused outside [-1, 1]: 1 draws as recorded, 0 every class alike, below 0
+    the rarer classes more often; beyond -1 a class of one take would crowd out the rest."""
+    require(-1.0 <= balance <= 1.0, where, "balance", "in [-1, 1]", balance)
+    return balance
+
 
 @dataclass
 class OptimConfig:
@@ -37,6 +53,19 @@ class OptimConfig:
     batch_size: int = 64          # per process
     max_steps: int = 20000
     grad_clip: float = 1.0
+
+    def check(self, where: str = "") -> None:
+        require(self.lr > 0, where, "lr", "> 0", self.lr)
+        require(len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas), where, "betas", "two numbers in [0, 1)",
+                self.betas)
+        require(self.weight_decay >= 0, where, "weight_decay", ">= 0", self.weight_decay)
+        require(self.warmup_steps >= 0, where, "warmup_steps", ">= 0", self.warmup_steps)
+        require(all(isinstance(m, int) and m > 0 for m in self.milestones) and list(self.milestones) ==
+                sorted(set(self.milestones)), where, "milestones", "ascending positive step counts", self.milestones)
+        require(self.gamma > 0, where, "gamma", "> 0", self.gamma)
+        require(self.batch_size >= 1, where, "batch_size", ">= 1", self.batch_size)
+        require(self.max_steps >= 1, where, "max_steps", ">= 1", self.max_steps)
+        require(self.grad_clip >= 0, where, "grad_clip", ">= 0 (0: no clipping)", self.grad_clip)
 
 
 @dataclass
@@ -51,6 +80,12 @@ class RunConfig:
     # steps between losses on the validation split, logged as val_loss (tasks that have one; 0 = off)
     validate_every: int = 0
 
+    def check(self, where: str = "") -> None:
+        for name in ("checkpoint_every", "log_every"):
+            require(getattr(self, name) >= 1, where, name, ">= 1", getattr(self, name))
+        require(self.threads >= 0, where, "threads", ">= 0 (0: torch's default)", self.threads)
+        require(self.validate_every >= 0, where, "validate_every", ">= 0 (0: off)", self.validate_every)
+
 
 @dataclass
 class VAETrainConfig:
@@ -59,6 +94,9 @@ class VAETrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     run: RunConfig = field(default_factory=RunConfig)
     window_overhang: float = 0.5  # at most this fraction of a window may lie past a motion's end
+
+    def check(self, where: str = "") -> None:
+        require(0 <= self.window_overhang < 1, where, "window_overhang", "in [0, 1)", self.window_overhang)
 
 
 @dataclass
@@ -89,6 +127,15 @@ class DenoiserTrainConfig:
     anchor: str = ""
     anchor_max_clips: int = 4
 
+    def check(self, where: str = "") -> None:
+        for name in ("text_dropout", "auto_length_prob"):
+            require(0 <= getattr(self, name) <= 1, where, name, "in [0, 1]", getattr(self, name))
+        require(0 <= self.ema_decay < 1, where, "ema_decay", "in [0, 1) (0: no EMA)", self.ema_decay)
+        require(self.min_snr_gamma >= 0, where, "min_snr_gamma", ">= 0 (0 = off)", self.min_snr_gamma)
+        for name in ("contact_loss", "posterior_noise"):
+            require(getattr(self, name) >= 0, where, name, ">= 0", getattr(self, name))
+        require(self.anchor_max_clips >= 0, where, "anchor_max_clips", ">= 0", self.anchor_max_clips)
+
 
 @dataclass
 class VAESANTrainConfig:
@@ -113,6 +160,16 @@ class VAESANTrainConfig:
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, warmup_steps=100, grad_clip=0.0))
     run: RunConfig = field(default_factory=lambda: RunConfig(out_dir="runs/vae_san"))
     window_overhang: float = 0.5
+
+    def check(self, where: str = "") -> None:
+        for name in ("lambda_adv", "lambda_foot", "lambda_root", "lambda_acc", "decoder_dim"):
+            require(getattr(self, name) >= 0, where, name, ">= 0", getattr(self, name))
+        require(0 <= self.denoised_share <= 1, where, "denoised_share", "in [0, 1]", self.denoised_share)
+        require(0 <= self.window_overhang < 1, where, "window_overhang", "in [0, 1)", self.window_overhang)
+
+
+# what a consistency student is taught to match (ConsistencyTrainConfig.target)
+CONSISTENCY_TARGETS = ("lcd", "trajectory")
 
 
 @dataclass
@@ -146,3 +203,17 @@ class ConsistencyTrainConfig:
     # an exported student to start from, of any width (e.g. a d = 128 student for a widened teacher, so
     # that sampling stays fast); empty: the teacher's own architecture and weights
     student: str = ""
+
+    def check(self, where: str = "") -> None:
+        require(0 <= self.guidance_min <= self.guidance_max, where, "guidance_min",
+                f"in [0, guidance_max ({self.guidance_max})]", self.guidance_min)
+        require(self.huber_c > 0, where, "huber_c", "> 0", self.huber_c)
+        require(0 <= self.auto_length_prob <= 1, where, "auto_length_prob", "in [0, 1]", self.auto_length_prob)
+        require(0 < self.target_decay < 1, where, "target_decay", "in (0, 1)", self.target_decay)
+        require(self.target in CONSISTENCY_TARGETS, where, "target", f"one of {', '.join(CONSISTENCY_TARGETS)}",
+                self.target)
+        require(2 <= self.teacher_steps <= 200, where, "teacher_steps", "in 2..200", self.teacher_steps)
+        for name in ("replay", "replay_buffer"):
+            require(getattr(self, name) >= 1, where, name, ">= 1", getattr(self, name))
+        require(0 <= self.cfg_rescale <= 1, where, "cfg_rescale", "in [0, 1]", self.cfg_rescale)
+        require(0 <= self.cfg_cutoff < 1, where, "cfg_cutoff", "in [0, 1)", self.cfg_cutoff)

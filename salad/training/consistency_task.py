@@ -26,18 +26,17 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..checkpoint import CheckpointError, load_state_strict
-from ..config import from_dict, to_dict
+from ..config import from_dict, to_dict, validate
 from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_timesteps
 from ..diffusion.sampling import cfg_combine
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
 from ..models.denoiser import Denoiser
 from ..models.io import (load_consistency_student, load_denoiser, partner_mismatches, save_denoiser,
                          vae_latent_checksums, vae_latent_origin)
-from .configs import ConsistencyTrainConfig, DenoiserTrainConfig
+from .configs import CONSISTENCY_TARGETS, ConsistencyTrainConfig, DenoiserTrainConfig
 from .denoiser_task import DenoiserTask
 
 
-OBJECTIVES = ("lcd", "trajectory")
 COND_KEYS = ("text", "text_mask", "frame_mask", "pooled", "auto", "text2", "text_mask2", "pooled2", "guidance")
 
 
@@ -48,8 +47,8 @@ class ConsistencyTraining(nn.Module):
         """student: where the student starts (e.g. a narrower one than the teacher, so it stays fast);
         None: the teacher's architecture and weights with a zero guidance embedding."""
         super().__init__()
-        if objective not in OBJECTIVES:
-            raise ValueError(f"unknown consistency target {objective!r}; choose one of {', '.join(OBJECTIVES)}")
+        if objective not in CONSISTENCY_TARGETS:
+            raise ValueError(f"unknown consistency target {objective!r}; choose one of {', '.join(CONSISTENCY_TARGETS)}")
         if student is None:
             cfg = copy.deepcopy(teacher.config)
             cfg.guidance_embedding = True
@@ -182,18 +181,7 @@ class ConsistencyTask:
     kind = "consistency"
 
     def __init__(self, cfg: ConsistencyTrainConfig, show_progress: bool = True):
-        if not 0.0 <= cfg.guidance_min <= cfg.guidance_max:
-            raise ValueError(f"need 0 <= guidance_min <= guidance_max, got {cfg.guidance_min}, {cfg.guidance_max}")
-        if not 0.0 < cfg.target_decay < 1.0:
-            raise ValueError(f"target_decay must be in (0, 1), got {cfg.target_decay}")
-        if cfg.target not in OBJECTIVES:
-            raise ValueError(f"target must be one of {', '.join(OBJECTIVES)}, got {cfg.target!r}")
-        if not (0.0 <= cfg.cfg_rescale <= 1.0 and 0.0 <= cfg.cfg_cutoff < 1.0):
-            raise ValueError(f"need cfg_rescale in [0, 1] and cfg_cutoff in [0, 1), got {cfg.cfg_rescale}, "
-                             f"{cfg.cfg_cutoff}")
-        if cfg.replay < 1 or cfg.replay_buffer < 1 or not 2 <= cfg.teacher_steps <= 200:
-            raise ValueError(f"need replay >= 1, replay_buffer >= 1 and teacher_steps in 2..200, got "
-                             f"{cfg.replay}, {cfg.replay_buffer}, {cfg.teacher_steps}")
+        validate(cfg)
         self.cfg = cfg
         root = Path(cfg.teacher)
         if not (root / "vae").is_dir() or not (root / "denoiser").is_dir():

@@ -24,12 +24,12 @@ import torch.nn as nn
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from ..config import ConfigError, to_dict
+from ..config import ConfigError, to_dict, validate
 from ..data.dataset import MotionDataset
 from ..diffusion.schedule import NoiseSchedule
 from ..models.denoiser import Denoiser
 from ..checkpoint import CheckpointError, load_state_strict
-from .balance import check_balance, class_weights, dataset_content
+from .balance import class_weights, dataset_content
 from ..models.io import load_denoiser, load_vae, save_denoiser, vae_latent_checksums, vae_latent_origin
 from ..models.widen import widen, widened_config
 from ..models.text import load_text_encoder, parse_text_encoder_spec
@@ -116,7 +116,7 @@ class DenoiserTask:
         # encode was ~15% of a step (the cache grows to ~0.4 GB on the Bandai build). Longer
         # motions get a random window, encoded each time.
         self._posteriors: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
-        check_balance(d.balance)        # before minutes of loading
+        validate(cfg)        # before minutes of loading
         self.bundle = None
         self._validation: list[dict] | None = None
         if d.bundle:
@@ -139,14 +139,8 @@ class DenoiserTask:
         self._weights = class_weights(self.content, d.balance)
         self.schedule = NoiseSchedule(cfg.diffusion)
         torch.manual_seed(cfg.run.seed)
-        if not cfg.min_snr_gamma >= 0:
-            raise ConfigError(f"min_snr_gamma must be >= 0 (0 = off), got {cfg.min_snr_gamma}")
         self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule, cfg.min_snr_gamma)
         self.anchor, self._learn = self._load_anchor(cfg) if cfg.anchor else (None, None)
-        if cfg.contact_loss < 0:
-            raise ConfigError(f"contact_loss must be >= 0, got {cfg.contact_loss}")
-        if not cfg.posterior_noise >= 0:
-            raise ConfigError(f"posterior_noise must be >= 0, got {cfg.posterior_noise}")
 
     def _load_anchor(self, cfg: DenoiserTrainConfig) -> tuple[Denoiser, np.ndarray]:
         """The frozen anchor (cfg.anchor) and, per training motion, whether it learns from the data

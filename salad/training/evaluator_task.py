@@ -17,7 +17,7 @@ import torch
 import torch.nn as nn
 
 from ..files import atomic_write_text
-from ..config import apply_overrides, load_toml, to_dict
+from ..config import apply_overrides, load_toml, to_dict, validate
 from ..data.dataset import MotionDataset, load_normalizer
 from ..models.text_bank import TextBank
 from .configs import OptimConfig, RunConfig
@@ -76,6 +76,7 @@ class EvaluatorTask:
     kind = KIND
 
     def __init__(self, cfg: EvaluatorTrainConfig, text_encoder=None, progress: bool = True):
+        validate(cfg)
         self.cfg = cfg
         d = cfg.data
         self.normalizer = load_normalizer(d.root)

@@ -21,6 +21,7 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, recover_checkpoint, save_checkpoint
+from ..config import validate
 from ..files import atomic_write_text
 from ..precision import bf16_supported, resolve_device, to_device
 from .configs import OptimConfig, RunConfig
@@ -116,6 +117,8 @@ def _differences(mine: dict, theirs: dict, prefix: str = "") -> list[tuple[str, 
 
 class Trainer:
     def __init__(self, task: Task, optim: OptimConfig, run: RunConfig, ema_decay: float | None = None):
+        validate(optim, "optim.")
+        validate(run, "run.")
         self.task, self.optim_cfg, self.run_cfg = task, optim, run
         self.device = training_device(run.device)
         self.rank, self.world = distributed_context(self.device)

@@ -21,13 +21,13 @@ import torch
 import torch.nn as nn
 from torch.func import functional_call
 
-from ..config import ConfigError, to_dict
+from ..config import ConfigError, to_dict, validate
 from ..data.dataset import MotionDataset, WindowSampler
 from ..models.discriminator import SANDiscriminator, san_discriminator_loss, san_generator_loss
 from ..models.io import load_vae, save_vae, vae_latent_sources
 from ..models.vae import ENCODER_PARTS, MotionVAE, widen_decoder
 from ..motion.representation import Normalizer
-from .balance import check_balance, window_weights
+from .balance import window_weights
 from .configs import VAESANTrainConfig
 from .denoised_latents import DenoisedLatents
 from .foot_loss import velocity_errors
@@ -98,7 +98,7 @@ class VAESANTask:
 
     def __init__(self, cfg: VAESANTrainConfig, dataset: MotionDataset | None = None):
         self.cfg = cfg
-        check_balance(cfg.data.balance)
+        validate(cfg)
         vae, self.normalizer, self.latent_scale, _ = load_vae(cfg.vae)
         if cfg.decoder_dim and cfg.decoder_dim != vae.decoder_dim:
             if cfg.decoder_dim < vae.decoder_dim:
@@ -118,8 +118,6 @@ class VAESANTask:
                              f"the data has {self.normalizer.dim} dims")
         weights = window_weights(self.dataset, cfg.data.balance)
         self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang, weights)
-        if not 0 <= cfg.denoised_share <= 1:
-            raise ConfigError(f"denoised_share must be in [0, 1], got {cfg.denoised_share}")
         self.denoised = DenoisedWindows(cfg.denoised_latents, self.dataset, cfg.data.window, self.sources[0],
                                         weights) if cfg.denoised_latents else None
         torch.manual_seed(cfg.run.seed)

@@ -8,12 +8,12 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..config import to_dict
+from ..config import to_dict, validate
 from ..data.dataset import MotionDataset, WindowSampler
 from ..models.vae import MotionVAE
 from ..checkpoint import load_state_strict
 from ..models.io import load_vae, save_vae
-from .balance import check_balance, window_weights
+from .balance import window_weights
 from .configs import VAETrainConfig
 
 
@@ -36,7 +36,7 @@ class VAETask:
 
     def __init__(self, cfg: VAETrainConfig, dataset: MotionDataset | None = None):
         self.cfg = cfg
-        check_balance(cfg.data.balance)
+        validate(cfg)
         self.dataset = dataset or MotionDataset(cfg.data.root, "train", min_frames=cfg.data.min_frames,
                                                 max_frames=10 ** 9, require_captions=False)
         self.sampler = WindowSampler(self.dataset, cfg.data.window, cfg.window_overhang,
