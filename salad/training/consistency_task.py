@@ -48,7 +48,8 @@ class ConsistencyTraining(nn.Module):
         None: the teacher's architecture and weights with a zero guidance embedding."""
         super().__init__()
         if objective not in CONSISTENCY_TARGETS:
-            raise ValueError(f"unknown consistency target {objective!r}; choose one of {', '.join(CONSISTENCY_TARGETS)}")
+            raise ValueError(f"unknown consistency target {objective!r}; "
+                             f"choose one of {', '.join(CONSISTENCY_TARGETS)}")
         if student is None:
             cfg = copy.deepcopy(teacher.config)
             cfg.guidance_embedding = True
