@@ -222,16 +222,41 @@ def test_planted_foot_error_counts_sliding_where_the_real_foot_is_planted_only(t
     assert float(planted_foot_error(as_batch(slid), as_batch(f), torch.zeros_like(valid), norm)) == 0.0
 
 
+def test_the_bone_error_is_the_squared_change_of_each_bones_length(tiny_dataset):
+    import numpy as np
+
+    from salad.motion import representation as rep
+    from salad.training.foot_loss import bone_error
+
+    norm = rep.Normalizer(np.load(tiny_dataset / "Mean.npy"), np.load(tiny_dataset / "Std.npy"))
+    f = np.load(tiny_dataset / "new_joint_vecs" / "000000.npy").astype(np.float64)
+    as_batch = lambda x: torch.from_numpy(norm.normalize(x)).float()[None]
+    valid = torch.ones(1, len(f), dtype=torch.bool)
+    assert float(bone_error(as_batch(f), as_batch(f), valid, norm)) == pytest.approx(0.0, abs=1e-8)
+    # the right ankle and toes drawn 5 cm up the shin: the shin is 5 cm short in every frame, the foot keeps its
+    # length, and the error is that one bone's 0.05^2 shared among the 21 bones
+    ric = lambda joint: slice(4 + 3 * (joint - 1), 4 + 3 * joint)
+    knee, ankle, toe = 5, 8, 11
+    shin = f[:, ric(ankle)] - f[:, ric(knee)]
+    pull = 0.05 * shin / np.linalg.norm(shin, axis=-1, keepdims=True)
+    short = f.copy()
+    short[:, ric(ankle)] -= pull
+    short[:, ric(toe)] -= pull
+    assert float(bone_error(as_batch(short), as_batch(f), valid, norm)) == pytest.approx(0.05 ** 2 / 21, rel=0.02)
+    # frames past a motion's end (valid = False) are not counted
+    assert float(bone_error(as_batch(short), as_batch(f), torch.zeros_like(valid), norm)) == 0.0
+
+
 def test_the_foot_term_joins_the_decoders_loss(tiny_model, tiny_dataset, tmp_path):
     cfg = _san_cfg(tiny_dataset, tiny_model / "vae", tmp_path / "foot", steps=1, lam=0.0)
-    cfg.lambda_foot, cfg.lambda_root, cfg.lambda_acc = 2.0, 3.0, 0.1
+    cfg.lambda_foot, cfg.lambda_root, cfg.lambda_acc, cfg.lambda_bone = 2.0, 3.0, 0.1, 5.0
     task = VAESANTask(cfg)
     trainer = Trainer(task, task.cfg.optim, task.cfg.run)
     logs = trainer.step(task.batch(trainer.rng))
-    assert logs["foot"] > 0 and logs["root_vel"] > 0 and logs["accel"] > 0
+    assert logs["foot"] > 0 and logs["root_vel"] > 0 and logs["accel"] > 0 and logs["bone"] > 0
     assert logs["loss"] == pytest.approx(logs["rec_total"] + 2.0 * logs["foot"] + 3.0 * logs["root_vel"]
-                                         + 0.1 * logs["accel"], rel=1e-5)
-    for name in ("lambda_foot", "lambda_acc"):
+                                         + 0.1 * logs["accel"] + 5.0 * logs["bone"], rel=1e-5)
+    for name in ("lambda_foot", "lambda_acc", "lambda_bone"):
         bad = _san_cfg(tiny_dataset, tiny_model / "vae", tmp_path / name, steps=1, lam=0.0)
         setattr(bad, name, -1.0)
         with pytest.raises(ValueError, match=name):

@@ -148,6 +148,9 @@ class VAESANTrainConfig:
     lambda_root: float = 0.0
     # weight of the joints' world acceleration error, (m/s^2)^2: keeps latent noise from becoming jitter; 0 = off
     lambda_acc: float = 0.0
+    # weight of the decoded bones' length error against the real clip's, m^2: keeps limbs their length in
+    # poses the decoder rarely saw; 0 = off
+    lambda_bone: float = 0.0
     # the decoder's channel width: 0 keeps the source's; more widens it, decoding exactly as the source's
     # does at the start (models/vae.py: widen_decoder)
     decoder_dim: int = 0
@@ -162,7 +165,7 @@ class VAESANTrainConfig:
     window_overhang: float = 0.5
 
     def check(self, where: str = "") -> None:
-        for name in ("lambda_adv", "lambda_foot", "lambda_root", "lambda_acc", "decoder_dim"):
+        for name in ("lambda_adv", "lambda_foot", "lambda_root", "lambda_acc", "lambda_bone", "decoder_dim"):
             require(getattr(self, name) >= 0, where, name, ">= 0", getattr(self, name))
         require(0 <= self.denoised_share <= 1, where, "denoised_share", "in [0, 1]", self.denoised_share)
         require(0 <= self.window_overhang < 1, where, "window_overhang", "in [0, 1)", self.window_overhang)

@@ -48,6 +48,22 @@ def velocity_errors(recon: torch.Tensor, real: torch.Tensor, valid: torch.Tensor
                 "accel": (acc * triples).sum() / triples.sum().clamp_min(1.0)}
 
 
+def bone_error(recon: torch.Tensor, real: torch.Tensor, valid: torch.Tensor,
+               normalizer: rep.Normalizer) -> torch.Tensor:
+    """Mean squared error, m^2, of every bone's length in `recon` against `real` (normalised features
+    (B, T, 263)) over the valid frames. The features give joint positions, not a skeleton, and in
+    poses it rarely saw the decoder drew limbs short: a generated kick's shin 0.23 m at its peak
+    against 0.40, which the rigid clean-up then straightened 0.18 m lower."""
+    with torch.autocast(recon.device.type, enabled=False):
+        lengths = []
+        for f in (recon, real):
+            j = rep.features_to_joints(normalizer.denormalize(f.float()))
+            lengths.append((j[:, :, 1:] - j[:, :, list(sk.PARENTS[1:])]).norm(dim=-1))
+        err = (lengths[0] - lengths[1]).pow(2).mean(-1)
+        v = valid.float()
+        return (err * v).sum() / v.sum().clamp_min(1.0)
+
+
 def planted_foot_error(recon: torch.Tensor, real: torch.Tensor, valid: torch.Tensor,
                        normalizer: rep.Normalizer, weights: torch.Tensor | None = None) -> torch.Tensor:
     """velocity_errors' "foot" term alone."""

@@ -4,8 +4,8 @@ The encoder and the latent scale are frozen, so a denoiser trained on the source
 decodes through the fine-tuned decoder unchanged; the exported checkpoint records the source's
 checksum for load_pipeline's compatibility check. The decoder minimises the source VAE's own
 reconstruction loss plus lambda_adv times the SAN generator loss (plus, where set, lambda_foot and
-lambda_root times the feet's and the root's world-velocity errors, and lambda_acc times the joints'
-acceleration error: training/foot_loss.py); the
+lambda_root times the feet's and the root's world-velocity errors, lambda_acc times the joints'
+acceleration error and lambda_bone times the bone lengths' error: training/foot_loss.py); the
 discriminator learns from the same batch. Both updates come from one backward pass through the shared Trainer
 (exact resume, bf16): the discriminator sees the reconstruction detached, and the decoder's
 adversarial term sees the discriminator's parameters detached, so each loss reaches only
@@ -30,7 +30,7 @@ from ..motion.representation import Normalizer
 from .balance import window_weights
 from .configs import VAESANTrainConfig
 from .denoised_latents import DenoisedLatents
-from .foot_loss import velocity_errors
+from .foot_loss import bone_error, velocity_errors
 
 
 def encoder_modules(vae: MotionVAE) -> list[nn.Module]:
@@ -47,16 +47,17 @@ class AdversarialVAETraining(nn.Module):
 
     def __init__(self, vae: MotionVAE, discriminator: SANDiscriminator, lambda_adv: float,
                  lambda_foot: float = 0.0, normalizer: Normalizer | None = None, lambda_root: float = 0.0,
-                 lambda_acc: float = 0.0):
+                 lambda_acc: float = 0.0, lambda_bone: float = 0.0):
         super().__init__()
-        if min(lambda_adv, lambda_foot, lambda_root, lambda_acc) < 0:
-            raise ValueError(f"lambda_adv, lambda_foot, lambda_root and lambda_acc must be >= 0, got {lambda_adv}, "
-                             f"{lambda_foot}, {lambda_root} and {lambda_acc}")
-        if max(lambda_foot, lambda_root, lambda_acc) > 0 and normalizer is None:
-            raise ValueError("lambda_foot, lambda_root and lambda_acc need the VAE's normalizer (the terms work in metres)")
+        if min(lambda_adv, lambda_foot, lambda_root, lambda_acc, lambda_bone) < 0:
+            raise ValueError(f"lambda_adv, lambda_foot, lambda_root, lambda_acc and lambda_bone must be >= 0, got "
+                             f"{lambda_adv}, {lambda_foot}, {lambda_root}, {lambda_acc} and {lambda_bone}")
+        if max(lambda_foot, lambda_root, lambda_acc, lambda_bone) > 0 and normalizer is None:
+            raise ValueError("lambda_foot, lambda_root, lambda_acc and lambda_bone need the VAE's normalizer "
+                             "(the terms work in metres)")
         self.vae, self.disc, self.lambda_adv = vae, discriminator, float(lambda_adv)
         self.lambda_foot, self.lambda_root, self.normalizer = float(lambda_foot), float(lambda_root), normalizer
-        self.lambda_acc = float(lambda_acc)
+        self.lambda_acc, self.lambda_bone = float(lambda_acc), float(lambda_bone)
         for m in encoder_modules(vae):
             m.requires_grad_(False)
 
@@ -81,6 +82,11 @@ class AdversarialVAETraining(nn.Module):
             logs.update(foot=float(errs["foot"].detach()), root_vel=float(errs["root"].detach()),
                         accel=float(errs["accel"].detach()))
             kinematic = self.lambda_foot * logs["foot"] + self.lambda_root * logs["root_vel"] + self.lambda_acc * logs["accel"]
+        if self.lambda_bone > 0:
+            bones = bone_error(recon, x, valid, self.normalizer)
+            total = total + self.lambda_bone * bones
+            logs["bone"] = float(bones.detach())
+            kinematic = kinematic + self.lambda_bone * logs["bone"]
         if self.lambda_adv > 0:
             mask = self.disc.patch_mask(valid)
             frozen = {k: v.detach() for k, v in self.disc.named_parameters()}
@@ -122,7 +128,8 @@ class VAESANTask:
                                         weights) if cfg.denoised_latents else None
         torch.manual_seed(cfg.run.seed)
         self.model = AdversarialVAETraining(vae, SANDiscriminator(cfg.discriminator), cfg.lambda_adv,
-                                            cfg.lambda_foot, self.normalizer, cfg.lambda_root, cfg.lambda_acc)
+                                            cfg.lambda_foot, self.normalizer, cfg.lambda_root, cfg.lambda_acc,
+                                            cfg.lambda_bone)
 
     def batch(self, rng: np.random.Generator) -> dict:
         size = self.cfg.optim.batch_size
