@@ -28,6 +28,7 @@ from .diffusion.schedule import CONSISTENCY_GRID, SAMPLERS, DiffusionConfig, Noi
 from .editing.build import build_edit, step_follower
 from .editing.real import edit_real
 from .editing.spec import DEFAULT_SELF_INJECT, EditResult, EditSpec
+from .editing.replay import SourceRecorder, SourceRun, SourceRuns
 from .editing.store import AttentionStore, RowAddressed
 from .config import from_dict
 from .models.denoiser import Denoiser
@@ -91,6 +92,9 @@ STILL_FEET_MPS = 0.1
 # (skating 0.042), without them one path strayed over 20 cm.
 CONTROL_FEET_TARGETS = 0.1
 DEFAULT_STEPS = {"ddim": 50, "dpm": 50, "consistency": 4}
+# Recorded source runs kept for edits to replay (salad.editing.replay): the teacher's record of a 9.8 s
+# canvas at 50 steps is about 90 MB in float32. Two cover a generated motion and the edit source before it.
+SOURCE_RUNS = 2
 # What Pipeline.compile can hand to torch.compile. On a 2-core AVX2 CPU (session 48) it took a 4-step generation
 # from 73-85 to 62-68 ms and DDIM-50 from 0.88-0.99 to 0.71-0.75 s, for 16-69 s of compiling at the first call;
 # off by default, as the studio's samplings mostly run observed (eager) and one-off commands would not repay it.
@@ -145,6 +149,7 @@ class Pipeline:
         self.projections = LATENT_PROJECTIONS
         self.foot_refine = FOOT_REFINE_EVALUATIONS
         self.compiled: dict[str, Callable] = {}
+        self.source_runs = SourceRuns(SOURCE_RUNS)
 
     def compile(self, parts: tuple[str, ...] = COMPILABLE) -> None:
         """Run `parts` (of COMPILABLE) through torch.compile, with dynamic shapes, from their next call on:
@@ -411,6 +416,18 @@ class Pipeline:
                                                      pooled_text=text.pooled, auto_length=flags, guidance=w).float()
         return fn
 
+    def source_key(self, prompt: str, frames: int | None, seed: int, steps: int, cfg: float, sampler: str) -> tuple:
+        """What decides a source branch's sampling (frames None: automatic length), so that a recorded
+        run is replayed only where sampling again would compute the same."""
+        return (prompt, frames, int(seed), steps, cfg, sampler, self.ddim_eta, self.cfg_rescale, self.cfg_cutoff,
+                self.bf16)
+
+    @staticmethod
+    def records(sampler: str) -> bool:
+        """Whether runs of `sampler` are recorded for edits to replay: the teacher's, whose CFG layout
+        lets the edited branch run alone (the student's edits take 4 forwards of 2 rows already)."""
+        return sampler != "consistency"
+
     def denoise(self, text, noise: torch.Tensor, sampler: str, steps: int, cfg: float, auto: bool,
                 seed: int | list[int] = 0, frame_mask: torch.Tensor | None = None, shared_noise: bool = False,
                 on_step=None, blend=None, start: int = 0, watch=None) -> torch.Tensor:
@@ -551,6 +568,9 @@ class Pipeline:
                           watch=self._length_watch(band, steps, sampler) if batch == 1 else None)
             spent = steps
         except _LengthLeftBand as left:
+            if return_attention and self.records(sampler):      # an edit of it goes straight to the band's edge
+                self.source_runs.put(self.source_key(prompt, frames, seed, steps, cfg, sampler),
+                                     SourceRun(held_frames=left.frames))
             motions = run(left.frames, length="held", progress=continued(progress, left.steps))
             spent = left.steps + steps
         for b, m in enumerate(motions):
@@ -571,8 +591,10 @@ class Pipeline:
         text = self.sampler_text([prompt] * batch, sampler)
         rows = self.conditional_rows(batch, sampler)
         store = AttentionStore(text, rows=rows, frames=canvas) if return_attention else None
-        on_step = (lambda i, n, x: progress(i, n)) if progress else None
-        with self.network(sampler).controlled(store):
+        # a motion whose maps are asked for is likely edited next: its run is kept for the edit to replay
+        recorder = SourceRecorder(rows, observers=[store]) if store and batch == 1 and self.records(sampler) else None
+        on_step = _stepped(progress, recorder)
+        with self.network(sampler).controlled(recorder or store):
             z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, on_step=on_step,
                              watch=watch)
         motions = self.decode(z, frames, [prompt] * batch, seed, foot_lock, length=length,
@@ -580,6 +602,9 @@ class Pipeline:
         if store is not None:
             for b, m in enumerate(motions):
                 m.attention = store.maps(b, frames=m.frames)
+        if recorder is not None and row is None:
+            recorder.run.attention = store.maps(0)
+            self.source_runs.put(self.source_key(prompt, frames, seed, steps, cfg, sampler), recorder.run)
         return motions
 
     @torch.no_grad()
@@ -745,7 +770,11 @@ class Pipeline:
         hold: body parts ("lower": root and legs, "upper") whose latents follow the source at every step;
         "auto" holds the lower body when re-weighting a prompt whose action is done in place (resolve_hold).
         Source and edited branches, with their CFG rows, run in one batched forward
-        from the same noise. Returns both motions and both attention maps.
+        from the same noise. Where the source branch was sampled before with the same seed, length, steps, cfg
+        and sampler settings (a generate with return_attention=True, or an earlier edit of it; the teacher's
+        samplers, the last SOURCE_RUNS kept in self.source_runs), it is replayed from that record and the edited
+        branch runs alone, two rows instead of four (edited.info["source_replayed"]).
+        Returns both motions and both attention maps.
         The edit may instead come as spec=EditSpec(...) (salad.editing.spec), without those keywords.
         foot_refine=False: both motions come before the planted-feet refinement (see generate).
         """
@@ -756,14 +785,6 @@ class Pipeline:
         steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
         canvas = frames or self.canvas_frames
 
-        text = self.sampler_text([source_prompt, target_prompt], sampler)
-        plan = build_edit(text, steps, canvas, spec, source_prompt, target_prompt,
-                          cfg_layout=sampler != "consistency",
-                          hold=self.resolve_hold(spec, source_prompt, target_prompt))
-        edit, store = plan.controller, plan.store
-
-        noise = self.noise(1, canvas, seed).repeat(2, 1, 1, 1)        # the same z_T for both branches
-        on_step = (lambda i, n, x: progress(i, n)) if progress else None
         band = self._band_for(seconds, source_prompt)
 
         def again_at(held: int, spent: int) -> EditResult:      # both branches again, at the source's band edge
@@ -773,18 +794,44 @@ class Pipeline:
             again.source.info["length"] = again.edited.info["length"] = "held"
             return again
 
+        key = self.source_key(source_prompt, frames, seed, steps, cfg, sampler)
+        replay = self.source_runs.get(key) if self.records(sampler) else None
+        if replay is not None and replay.held_frames is not None:      # the source's length left the band
+            return again_at(replay.held_frames, 0)
+
+        text = self.sampler_text([source_prompt, target_prompt], sampler)
+        plan = build_edit(text, steps, canvas, spec, source_prompt, target_prompt,
+                          cfg_layout=sampler != "consistency",
+                          hold=self.resolve_hold(spec, source_prompt, target_prompt),
+                          replay=replay, record=replay is None and self.records(sampler))
+
+        noise = self.noise(1, canvas, seed)
+        if replay is None:
+            noise = noise.repeat(2, 1, 1, 1)        # the same z_T for both branches
+        on_step = _stepped(progress, plan.recorder)
+
+        # a replayed source already kept to its band (it was recorded whole), so only a fresh one is watched
+        watch = None if replay is not None else self._length_watch(band, steps, sampler)
         try:
-            with self.network(sampler).controlled(edit):
-                z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, shared_noise=True,
-                                 on_step=on_step, blend=plan.blend, watch=self._length_watch(band, steps, sampler))
+            with self.network(sampler).controlled(plan.controller):
+                z = self.denoise(plan.text, noise, sampler, steps, cfg, auto=frames is None, seed=seed,
+                                 shared_noise=True, on_step=on_step, blend=plan.blend, watch=watch)
         except _LengthLeftBand as left:
+            if plan.recorder is not None:
+                self.source_runs.put(key, SourceRun(held_frames=left.frames))
             return again_at(left.frames, left.steps)
+        if replay is not None:
+            z = torch.cat((replay.latents[-1].to(z), z))
         source, edited = self.decode(z, frames, [source_prompt, target_prompt], seed, foot_lock,
                                      length=self.length_source(seconds), feet="refine" if foot_refine else "defer")
+        if plan.recorder is not None:
+            plan.recorder.run.attention = plan.store.maps(0)
+            self.source_runs.put(key, plan.recorder.run)
         held = self._held_length(band, source.frames)
         if held is not None:
             return again_at(held, steps)
-        source.attention, edited.attention = store.maps(0, source.frames), store.maps(1, edited.frames)
+        source.attention, edited.attention = plan.maps(source.frames, edited.frames)
+        edited.info["source_replayed"] = replay is not None
         params = dict(plan.params, seed=seed, steps=steps, cfg=cfg, sampler=sampler)
         return EditResult(source, edited, source.attention, edited.attention, params)
 
@@ -796,6 +843,20 @@ class Pipeline:
         parameters."""
         return edit_real(self, motion, source_prompt, target_prompt, mode, **params)
 
+
+
+def _stepped(progress: Progress | None, recorder: SourceRecorder | None):
+    """A denoise on_step that reports progress and hands the recorded row's latents (the batch's first)
+    to `recorder`; None where neither is there."""
+    if progress is None and recorder is None:
+        return None
+
+    def on_step(i: int, n: int, x: torch.Tensor) -> None:
+        if recorder is not None:
+            recorder.step(x[:1])
+        if progress is not None:
+            progress(i, n)
+    return on_step
 
 
 def _length_keyword(seconds) -> str | None:

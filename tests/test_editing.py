@@ -254,6 +254,85 @@ def test_swap_with_tau_at_the_start_is_target_only_generation(tiny_model):
     np.testing.assert_allclose(res.edited.joints, target_only.joints, atol=5e-3)
 
 
+# edits that move the tiny model's motion by millimetres at least (its upper-body mirror moves it 0.03 mm)
+REPLAYED = [kw for kw in MODES if kw["mode"] != "mirror"] + [
+    dict(mode="mirror", mirror="all"), dict(mode="reweight", reweight={"walks": -2.0}, hold="lower")]
+
+
+@pytest.mark.parametrize("kw", REPLAYED, ids=lambda kw: kw["mode"] + ("+hold" if "hold" in kw else ""))
+def test_an_edit_of_a_recorded_source_runs_the_edited_branch_alone_to_the_same_motion(tiny_model, kw):
+    from salad.pipeline import load_pipeline
+    pipe = load_pipeline(tiny_model, bf16=False)
+    pipe.set_foot_refine(0)
+    args = dict(seed=1, seconds=1.6, steps=6)
+    rows = []
+    forward = pipe.denoiser.forward
+    pipe.denoiser.forward = lambda z, *a, **k: rows.append(z.shape[0]) or forward(z, *a, **k)
+    first = pipe.edit("a person walks forward", **args, **kw)     # four rows, the source branch recorded
+    seen, rows[:] = list(rows), []
+    again = pipe.edit("a person walks forward", **args, **kw)     # two rows, the source's maps and latents read back
+    assert set(seen) <= {4, 2} and max(seen) == 4 and max(rows) == 2   # (unguided steps drop the unconditional rows)
+    assert not first.edited.info["source_replayed"] and again.edited.info["source_replayed"]
+    np.testing.assert_allclose(again.source.joints, first.source.joints, atol=1e-4)
+    moved = np.abs(first.edited.joints - first.source.joints).max()
+    gap = np.abs(again.edited.joints - first.edited.joints).max()
+    assert gap < min(1e-4, moved / 5), (gap, moved)     # the same edit, not the source sampled again
+    np.testing.assert_allclose(again.edited_attention.data, first.edited_attention.data, atol=5e-3)
+    np.testing.assert_array_equal(again.source_attention.data, first.source_attention.data)
+    assert again.params == first.params
+
+
+def test_an_edit_replays_the_generated_motion_it_starts_from_and_nothing_else(tiny_model):
+    from salad.editing.replay import SourceRun
+    from salad.pipeline import load_pipeline
+    pipe = load_pipeline(tiny_model, bf16=False)
+    pipe.set_foot_refine(0)
+    prompt, args = "a person walks forward", dict(seed=3, seconds=1.6, steps=6)
+    shown = pipe.generate(prompt, **args, return_attention=True)
+    res = pipe.edit(prompt, "a person runs forward", **args)
+    assert res.edited.info["source_replayed"]
+    np.testing.assert_allclose(res.source.joints, shown.joints, atol=1e-4)
+    pipe.source_runs.clear()
+    fresh = pipe.edit(prompt, "a person runs forward", **args)
+    assert not fresh.edited.info["source_replayed"]
+    np.testing.assert_allclose(res.edited.joints, fresh.edited.joints, atol=1e-3)
+    # another seed, step count or sampler setting is another source: sampled, not replayed
+    assert not pipe.edit(prompt, "a person runs forward", **dict(args, seed=4)).edited.info["source_replayed"]
+    pipe.set_sampling(cfg_rescale=0.0)
+    assert not pipe.edit(prompt, "a person runs forward", **args).edited.info["source_replayed"]
+    # a generate that returns no maps records nothing (it may run fused attention, or compiled)
+    pipe.source_runs.clear()
+    pipe.generate(prompt, **args)
+    assert len(pipe.source_runs) == 0
+    # recorded beside a longer target prompt (its maps padded to that batch's tokens), replayed beside a shorter one
+    pipe.edit(prompt, "a person walks forward happily and slowly", mode="refine", **args)
+    mirrored = pipe.edit(prompt, mode="mirror", mirror="all", **args)
+    assert mirrored.edited.info["source_replayed"]
+    pipe.source_runs.clear()
+    np.testing.assert_allclose(mirrored.edited.joints,
+                               pipe.edit(prompt, mode="mirror", mirror="all", **args).edited.joints, atol=1e-4)
+    # a source whose automatic length left its band is sampled at the band's edge straight away
+    pipe.source_runs.put(pipe.source_key(prompt, None, 5, 6, 7.5, "ddim"), SourceRun(held_frames=40))
+    held = pipe.edit(prompt, "a person runs forward", seed=5, steps=6)
+    assert held.source.frames == held.edited.frames == 40 and held.edited.info["length"] == "held"
+
+
+def test_recorded_source_runs_are_bounded():
+    from salad.editing.replay import SourceRun, SourceRuns
+    runs = SourceRuns(2)
+    for k in "abc":
+        runs.put(k, SourceRun(held_frames=40))
+    assert len(runs) == 2 and runs.get("a") is None and runs.get("c") is not None
+    runs.get("b")
+    runs.put("d", SourceRun())
+    assert runs.get("b") is not None and runs.get("c") is None      # least recently used goes first
+    none = SourceRuns(0)
+    none.put("a", SourceRun())
+    assert len(none) == 0
+    with pytest.raises(ValueError, match="capacity"):
+        SourceRuns(-1)
+
+
 def test_edit_input_errors(tiny_model):
     from salad.pipeline import load_pipeline
     pipe = load_pipeline(tiny_model)

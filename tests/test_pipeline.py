@@ -163,6 +163,11 @@ def test_unguided_steps_skip_the_unconditional_rows_with_or_without_controllers(
         assert rows == [2] * 7 + [1] * 3          # the store is told where the prompt's row went
         rows.clear()
         edit = dict(mode="swap", target_prompt="a person runs forward", **walk)
+        replayed = pipe.edit("a person walks forward", **edit)
+        assert rows == [2] * 7 + [1] * 3          # the source generated just before is replayed: the edit alone
+        assert replayed.edited.info["source_replayed"]
+        rows.clear()
+        pipe.source_runs.clear()
         edited = pipe.edit("a person walks forward", **edit)
         assert rows == [4] * 7 + [2] * 3          # source + target, their CFG rows above the cutoff
         rows.clear()
@@ -184,6 +189,7 @@ def test_unguided_steps_skip_the_unconditional_rows_with_or_without_controllers(
         fn.__dict__.pop("conditional", None)
         return fn
     pipe.model_fn = every_row
+    pipe.source_runs.clear()
     reference = pipe.edit("a person walks forward", **edit)
     for got, want in ((edited.source, reference.source), (edited.edited, reference.edited)):
         np.testing.assert_allclose(got.joints, want.joints, atol=1e-3)

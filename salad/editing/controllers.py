@@ -12,8 +12,8 @@ injects the source's self-attention maps early on.
 """
 from __future__ import annotations
 
-from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 
@@ -21,24 +21,20 @@ from ..models.attention import CROSS, AttentionCall
 from ..motion import skeleton as sk
 from .align import TokenAlignment
 from .spec import DEFAULT_SELF_INJECT, DEFAULT_TAU
-from .store import RowAddressed, StepCounter
+from .store import RowAddressed, StepCounter, call_rows
 
 
 @dataclass
 class Rows:
     """Where the branches sit in the batched forward (each a slice of batch rows)."""
 
-    source: slice
+    source: slice | None      # None: the source is a replayed run, not rows of the forward
     target: slice
 
 
 def cfg_rows(batch: int) -> Rows:
     """Rows of the conditional source and target branches in the CFG layout above."""
     return Rows(source=slice(2 * batch, 3 * batch), target=slice(3 * batch, 4 * batch))
-
-
-def _expand(rows: slice, per_row: int) -> slice:
-    return slice(rows.start * per_row, rows.stop * per_row)
 
 
 # ---------------------------------------------------------------- cross-attention rules
@@ -158,6 +154,18 @@ class HoldParts:
         out[self.target, :, idx] = x[self.source, :, idx]
         return out
 
+    def replayed(self, run) -> Callable[[torch.Tensor], torch.Tensor]:
+        """The blend for an edit whose source is a recorded run (salad.editing.replay): the edited
+        branch, the only row, takes the held parts of the run's latents after the same step."""
+        taken = iter(run.latents)
+
+        def blend(x: torch.Tensor) -> torch.Tensor:
+            idx = self.index.to(x.device)
+            out = x.clone()
+            out[:, :, idx] = next(taken).to(x)[:, :, idx]
+            return out
+        return blend
+
 
 # ---------------------------------------------------------------- the controller
 
@@ -167,16 +175,26 @@ class AttentionEdit(RowAddressed):
     and its temporal and skeletal self-attention follow the source for the first
     `self_inject` share of the steps. Values always come from the target branch's own
     prompt and hidden states, as in the paper. `observers` see the maps actually used.
+    replay: a recorded source run (salad.editing.replay) whose maps stand in for the source rows,
+    which the forward then lacks (rows.source is None).
     """
 
     def __init__(self, rows: Rows, steps: int, rule, transforms=(), self_inject: float = DEFAULT_SELF_INJECT,
-                 observers=()):
+                 observers=(), replay=None):
         if not 0.0 <= self_inject <= 1.0:
             raise ValueError(f"self-attention injection must be a fraction in [0, 1], got {self_inject}")
+        if (rows.source is None) != (replay is not None):
+            raise ValueError("the source's maps come from source rows or from a replayed run, one of the two")
         self.rows, self.rule, self.transforms = rows, rule, list(transforms)
         self.self_inject = self_inject
         self.counter = StepCounter(steps)
         self.observers = list(observers)
+        self.replay = replay
+
+    def _source(self, call: AttentionCall) -> torch.Tensor:
+        if self.replay is not None:
+            return self.replay.probs(self.counter.step, call)
+        return call.probs[call_rows(call, self.at(self.rows.source))]
 
     def __call__(self, call: AttentionCall) -> torch.Tensor:
         self.counter.see(call)
@@ -184,22 +202,20 @@ class AttentionEdit(RowAddressed):
         if call.kind == CROSS:
             probs = self._cross(call)
         elif self.counter.fraction < self.self_inject:
-            per = call.parts if call.kind == "temporal" else call.frames
-            src, tgt = _expand(self.at(self.rows.source), per), _expand(self.at(self.rows.target), per)
-            injected = probs[src]
+            injected = self._source(call)
             for t in self.transforms:
                 if hasattr(t, "self_attention"):
                     injected = t.self_attention(call.kind, injected, call.frames, call.parts)
             probs = probs.clone()
-            probs[tgt] = injected
+            probs[call_rows(call, self.at(self.rows.target))] = injected
         for obs in self.observers:
             obs(AttentionCall(call.kind, call.layer, probs, call.batch, call.frames, call.parts))
         return probs
 
     def _cross(self, call: AttentionCall) -> torch.Tensor:
         N, H, Q, L = call.probs.shape
-        grid = call.probs.view(N, H, call.frames, call.parts, L)
-        src, tgt = grid[self.at(self.rows.source)], grid[self.at(self.rows.target)]
+        src = self._source(call).view(-1, H, call.frames, call.parts, L)
+        tgt = call.probs.view(N, H, call.frames, call.parts, L)[self.at(self.rows.target)]
         edited = self.rule(src, tgt, self.counter.fraction)
         for t in self.transforms:
             edited = t(edited)
@@ -207,15 +223,5 @@ class AttentionEdit(RowAddressed):
         out[self.at(self.rows.target)] = edited.reshape(-1, H, Q, L).to(out.dtype)
         return out
 
-    def lowest_row(self) -> int:
-        return min(self.rows.source.start, self.rows.target.start,
-                   *(o.lowest_row() for o in self.observers if isinstance(o, RowAddressed)))
-
-    @contextmanager
-    def leading_rows_dropped(self, n: int):
-        with ExitStack() as stack:
-            stack.enter_context(super().leading_rows_dropped(n))
-            for o in self.observers:
-                if isinstance(o, RowAddressed):
-                    stack.enter_context(o.leading_rows_dropped(n))
-            yield
+    def own_lowest_row(self) -> int:
+        return min(r.start for r in (self.rows.source, self.rows.target) if r is not None)

@@ -8,7 +8,7 @@ Afterwards any layer subset and step range can be aggregated without re-running.
 """
 from __future__ import annotations
 
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,15 +83,27 @@ class StepCounter:
         return max(self.step, 0) / max(self.total, 1)
 
 
+def call_rows(call: AttentionCall, motions: slice) -> slice:
+    """The rows of call.probs that belong to the batch's motions `motions`: one per motion in
+    cross-attention, one per body part (temporal) or latent frame (skeletal) in self-attention."""
+    per = 1 if call.kind == CROSS else call.parts if call.kind == "temporal" else call.frames
+    return slice(motions.start * per, motions.stop * per)
+
+
 class RowAddressed:
     """A controller that addresses rows of the full batched forward [unconditional..., conditional...].
     Steps without guidance need the conditional rows alone (Pipeline.model_fn): while they run,
-    inside leading_rows_dropped(n), every row it addresses sits n places lower."""
+    inside leading_rows_dropped(n), every row it addresses, and every row its `observers` (controllers
+    it passes the maps on to) address, sits n places lower."""
 
     _dropped = 0
+    observers: list = []
+
+    def own_lowest_row(self) -> int:
+        raise NotImplementedError
 
     def lowest_row(self) -> int:
-        raise NotImplementedError
+        return min([self.own_lowest_row(), *(o.lowest_row() for o in self.observers if isinstance(o, RowAddressed))])
 
     def at(self, rows: slice) -> slice:
         """Where `rows` of the full layout are in the forward now running."""
@@ -102,11 +114,15 @@ class RowAddressed:
         if n > self.lowest_row():
             raise ValueError(f"{type(self).__name__} reads row {self.lowest_row()}, which a forward without the "
                              f"first {n} rows lacks")
-        self._dropped = n
-        try:
-            yield
-        finally:
-            self._dropped = 0
+        with ExitStack() as stack:
+            for o in self.observers:
+                if isinstance(o, RowAddressed):
+                    stack.enter_context(o.leading_rows_dropped(n))
+            self._dropped = n
+            try:
+                yield
+            finally:
+                self._dropped = 0
 
 
 class AttentionStore(RowAddressed):
@@ -143,7 +159,7 @@ class AttentionStore(RowAddressed):
         self._current[call.layer] = p.reshape(b, call.frames, call.parts, L).to(torch.float16)
         return call.probs
 
-    def lowest_row(self) -> int:
+    def own_lowest_row(self) -> int:
         return self.rows.start
 
     def _flush(self) -> None:

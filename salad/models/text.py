@@ -71,6 +71,11 @@ class TextFeatures:
         """Positions of the tokens of word ``word_index`` in prompt ``batch_index``."""
         return torch.nonzero(self.token_words[batch_index] == word_index).flatten().tolist()
 
+    def select(self, rows: list[int]) -> "TextFeatures":
+        """These rows of the batch, padded as they were."""
+        return TextFeatures(self.tokens[rows], self.mask[rows], self.token_words[rows],
+                            [list(self.words[r]) for r in rows], self.pooled[rows])
+
     def to(self, device: torch.device | str) -> "TextFeatures":
         return TextFeatures(self.tokens.to(device), self.mask.to(device), self.token_words.to(device),
                             [list(w) for w in self.words], self.pooled.to(device))
