@@ -12,7 +12,11 @@ download) in its place. The rows:
 - generate → preview video: generations at the default settings (target 1.5 s);
 - generate → full video: the same plus its "generate_video" call (no target);
 - edit → preview side-by-side, and → full: edits of the first prompt, the first edit of a source
-  (target 2.5 s), then second edits of the same sources, which reuse the rendered source panel;
+  (target 2.5 s), then second edits of the same sources, which replay the source's sampling and reuse
+  its rendered panel;
+- edit this motion → preview side-by-side: the first prompt generated (untimed, with its full video),
+  the Edit tab filled from it ("edit_generated"), then the same edits as above timed: the pipeline replays
+  the generated motion's sampling, and only the edited branch samples (target 2.5 s);
 - control → preview video: a path preset through the "control" API (target 4 s), then → full;
 - word click → heatmap: the "attention" API with a word picked after a generation, whose maps are
   kept (nothing is resampled), while the previous word's tinted video renders as it does on the
@@ -55,6 +59,8 @@ ROWS = (("generate → preview video", "generate_s", GENERATE_TARGET_S),
         ("edit → full side-by-side", "edit_first_full_s", None),
         ("edit again, same source → preview", "edit_same_source_s", EDIT_TARGET_S),
         ("edit again, same source → full", "edit_same_source_full_s", None),
+        ("edit this motion → preview", "edit_generated_s", EDIT_TARGET_S),
+        ("edit this motion → full", "edit_generated_full_s", None),
         ("control (path) → preview video", "control_s", CONTROL_TARGET_S),
         ("control (path) → full video", "control_full_s", None),
         ("word click → heatmap", "word_click_s", WORD_TARGET_S))
@@ -161,6 +167,16 @@ def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads:
                 [lambda e=e, i=i: edit(*e, 10 + i) for i, e in enumerate(EDITS)], "/edit_video")
             report["edit_same_source_s"], report["edit_same_source_full_s"] = series(
                 [lambda e=e, i=i: edit(*e, 10 + i) for i, e in enumerate(EDITS_AGAIN)], "/edit_video")
+            def edit_generated(mode: str, target: str, mirror: str, seed: int) -> tuple[float, float]:
+                two_steps(lambda: generate(PROMPTS[0], seed), "/generate_video")     # the motion, untimed
+                source, _, auto, seconds, seed, steps_, cfg, sampler_, lock = (
+                    v.get("value") if isinstance(v, dict) else v for v in client.predict(api_name="/edit_generated"))
+                return two_steps(lambda: shown(client.predict(source, mode, target, None, "", 2.0, mirror, 0.2, "auto",
+                                                              auto, seconds, seed, steps_, cfg, sampler_, lock,
+                                                              api_name="/edit")), "/edit_video")
+
+            times = [edit_generated(*e, 20 + i) for i, e in enumerate(EDITS)]
+            report["edit_generated_s"], report["edit_generated_full_s"] = [p for p, _ in times], [f for _, f in times]
             report["control_s"], report["control_full_s"] = series(
                 [lambda p=p: control(p, 0) for p in CONTROLS], "/control_video")
             report["word_click_s"] = word_clicks(client, generate(PROMPTS[0], 0))

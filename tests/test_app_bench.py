@@ -10,11 +10,11 @@ def test_studio_latency_bench_times_every_request(tiny_model):
     for _, key, _ in ROWS:
         assert report[key] and all(t > 0 for t in report[key]), key
     for preview, full in (("generate_s", "generate_full_s"), ("edit_first_s", "edit_first_full_s"),
-                          ("control_s", "control_full_s")):
+                          ("edit_generated_s", "edit_generated_full_s"), ("control_s", "control_full_s")):
         assert all(f > p for p, f in zip(report[preview], report[full])), "the full video: the preview call and more"
     table = format_table(report)
     for text in ("generate → preview video", "generate → full video", "edit again, same source → preview",
-                 "control (path) → preview video", "word click → heatmap"):
+                 "edit this motion → preview", "control (path) → preview video", "word click → heatmap"):
         assert text in table, text
     full_row = next(line for line in table.splitlines() if line.startswith("generate → full video"))
     assert full_row.split()[-1] == "-", "the full-video rows have no target"

@@ -301,9 +301,33 @@ def test_preview_shows_targets_or_says_what_is_missing(client):
     assert "generate a motion first" in json.dumps(fig)
 
 
+def test_edit_this_motion_fills_the_edit_tab_and_the_edit_starts_from_that_very_motion(client):
+    with pytest.raises(AppError, match="generate a motion first"):
+        client.predict(api_name="/edit_generated")
+    prompt = "a person waves their left hand"
+    out = client.predict(prompt, False, 1.6, 7, STEPS, 6.5, "ddim", False, api_name="/generate")
+    shown = np.load(next(f for f in out[3] if f.endswith("seed7_joints.npy")))
+
+    def value(update):
+        return update["value"] if isinstance(update, dict) else update
+    # (the tab switch is no value an API client receives)
+    source, target, auto, seconds, seed, steps, cfg, sampler, foot_lock = map(
+        value, client.predict(api_name="/edit_generated"))
+    assert source == target == prompt
+    assert (auto, seconds, seed, steps, cfg, sampler, foot_lock) == (False, 1.6, 7, STEPS, 6.5, "ddim", False)
+    _, summary, _, _, _, files = client.predict(source, "mirror", "", None, "", 2.0, "all", 0.2, "auto", auto,
+                                                seconds, seed, steps, cfg, sampler, foot_lock, api_name="/edit")
+    assert "Sampled the edited branch (the source's sampling replayed)" in summary
+    np.testing.assert_allclose(np.load(by_name(files, "_source_joints.npy")), shown, atol=1e-4)
+    # another seed is another source: both branches are sampled
+    _, summary, *_ = client.predict(source, "mirror", "", None, "", 2.0, "all", 0.2, "auto", auto, seconds, 8,
+                                    steps, cfg, sampler, foot_lock, api_name="/edit")
+    assert "Sampled both branches" in summary
+
+
 def test_every_new_event_has_an_api_name(server):
     names = {fn.api_name for fn in server[1].demo.fns.values()}
-    assert {"edit", "edit_video", "edit_files", "edit_attention", "control", "control_video",
+    assert {"edit", "edit_generated", "edit_video", "edit_files", "edit_attention", "control", "control_video",
             "control_preview"} <= names
 
 

@@ -7,6 +7,7 @@ To shoot the screenshots with a real model:
         pytest tests/test_browser.py
 """
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -280,6 +281,29 @@ def test_every_edit_mode_shows_source_and_edit_side_by_side(studio_url, page):
     settle_edit(page)
     shoot(page.locator("#edit-tab"), "edit-mirror.png")
     assert not page.outside_requests, f"the page reached outside hosts: {page.outside_requests[:5]}"
+
+
+def test_edit_this_motion_opens_the_edit_tab_on_the_generated_motion(studio_url, page):
+    page.goto(studio_url, wait_until="load")
+    page.locator("#prompt textarea").fill(PROMPT)
+    page.locator("#generate-tab").get_by_text("Sampling", exact=True).click()
+    set_slider(page, "#steps", STEPS)
+    page.locator("#seed input").fill("5")
+    page.locator("#generate-button").click()
+    page.wait_for_function("() => document.querySelector('#summary').innerText.includes('happily')")
+    page.locator("#edit-this-button").click()
+    # the Edit tab shows, its source and target are the prompt, its sampling the generation's
+    page.wait_for_function("""(prompt) => { const t = document.querySelector('#edit-source textarea');
+        return t && t.offsetParent !== null && t.value === prompt; }""", arg=PROMPT)
+    assert page.locator("#edit-target textarea").input_value() == PROMPT
+    page.locator("#edit-tab").get_by_text("Sampling", exact=True).click()
+    steps = re.search(r"(\d+) DDIM steps", page.locator("#summary").inner_text()).group(1)
+    assert page.locator("#edit-steps input[type=number]").input_value() == steps
+    assert page.locator("#edit-seed input").input_value() == "5"
+    page.locator("#edit-target textarea").fill(PROMPT.replace("right", "left"))
+    page.locator("#edit-button").click()
+    page.wait_for_function("() => document.querySelector('#edit-summary').innerText.includes('replayed')")
+    assert "“right” → “left”" in page.locator("#edit-summary").inner_text()
 
 
 def test_a_path_control_shows_the_guided_motion_and_its_error(studio_url, page):

@@ -102,6 +102,7 @@ class GeneratePanel:
     summary: gr.Markdown
     downloads: gr.File
     bvh_units: gr.Dropdown
+    edit_this: gr.Button
 
     @property
     def inputs(self) -> list:
@@ -146,9 +147,11 @@ def build_generate_panel(pipe, samplers=("ddim", "dpm"), sampler: str = "ddim") 
                     gr.Markdown(PLOT_CAPTION, elem_classes="video-caption", elem_id="skeleton-caption")
                     skeleton = gr.Plot(label="3D view", show_label=False, elem_id="skeleton-plot")
             summary = gr.Markdown(elem_id="summary")
+            # the Edit tab takes this motion's prompt, seed and sampling, so its edits start from this very motion
+            edit_this = gr.Button("Edit this motion", size="sm", elem_id="edit-this-button")
             bvh_units = bvh_units_dropdown("bvh-units")
             downloads = gr.File(label="Downloads: MP4 video, BVH, NPY joints, NPY features, "
                                       "NPZ joints + features",
                                 file_count="multiple", interactive=False, elem_id="downloads")
     return GeneratePanel(prompt, auto_length, seconds, seed, steps, cfg, sampler_radio, foot_lock, button, video,
-                         skeleton, summary, downloads, bvh_units)
+                         skeleton, summary, downloads, bvh_units, edit_this)

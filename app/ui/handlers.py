@@ -26,6 +26,7 @@ from .summaries import control_markdown, edit_markdown, summary_markdown
 
 log = logging.getLogger("salad.studio")
 NO_MOTION = "generate a motion first: the attention maps belong to the last generated motion"
+NO_MOTION_TO_EDIT = "generate a motion first: the Edit tab takes its prompt, length, seed and sampling"
 NO_EDIT = "run an edit first: the maps belong to the last edit"
 NO_RESULT = {"generate": "generate a motion first: its video is rendered after it",
              "edit": "run an edit first: its video is rendered after it",
@@ -122,6 +123,20 @@ class Handlers:
             None,
             None,
         )
+
+    def edit_generated(self, state, request: gr.Request):
+        """The Edit tab, shown, takes the last generated motion's prompt (as source and target), length, seed and
+        sampling: its edits then start from that very motion, whose sampling the pipeline replays
+        instead of running the source branch again."""
+        result = state.latest("generate") if isinstance(state, Session) else None
+        if result is None:
+            raise ValueError(NO_MOTION_TO_EDIT)
+        self.studio.session(state, request.session_hash)
+        r = result.request
+        auto = r.seconds is None
+        seconds = gr.Slider(interactive=False) if auto else gr.Slider(value=r.seconds, interactive=True)
+        return (gr.Tabs(selected="edit"), r.prompt, r.prompt, auto, seconds, r.seed, r.steps, r.cfg, r.sampler,
+                r.foot_lock)
 
     def _full_video(self, kind: str, units, state, request: gr.Request, progress):
         """The session's latest `kind` result's antialiased MP4 (rendered now unless it was before)
@@ -333,8 +348,8 @@ class Handlers:
 def guard_all(handlers: Handlers) -> dict:
     """The handlers wrapped by `guarded`, by name."""
     names = ("length_mode", "sampler_steps", "real_sampler", "generate", "generate_video", "attention",
-             "attention_video", "edit_mode", "edit_words", "edit", "edit_video", "edit_files", "edit_attention",
-             "control_task", "control_preview", "control", "control_video", "real_mode", "real_clip", "real_upload",
+             "attention_video", "edit_generated", "edit_mode", "edit_words", "edit", "edit_video", "edit_files",
+             "edit_attention", "control_task", "control_preview", "control", "control_video", "real_mode", "real_clip", "real_upload",
              "edit_real")
     units = {f"bvh_units_{kind}": guarded(handlers.bvh_units(kind)) for kind in ("generate", "edit", "control", "real")}
     return {n: guarded(getattr(handlers, n)) for n in names} | units | {"unload": handlers.unload}

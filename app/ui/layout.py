@@ -96,7 +96,7 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
     with gr.Blocks(title=TITLE, delete_cache=(int(settings.prune_every_s), int(ttl))) as demo:
         state = gr.State(None, time_to_live=ttl, delete_callback=_close_session)
         gr.Markdown(header_markdown(studio.pipe))
-        with gr.Tabs():
+        with gr.Tabs() as tabs:
             with gr.Tab("Generate", id="generate", elem_id="generate-tab"):
                 gen = build_generate_panel(pipe, samplers, sampler)
             with gr.Tab("Attention", id="attention", elem_id="attention-tab"):
@@ -138,6 +138,9 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
         rendered = _full_video(h, "generate", "generate_video", gen, generated, state, (gen.skeleton, gen.summary))
         _wire_units(h, "generate", "bvh_units", gen, rendered, state)
         _wire_edit(h, ed, state, settings)
+        gen.edit_this.click(h["edit_generated"], [state],
+                            [tabs, ed.source, ed.target, ed.auto_length, ed.seconds, ed.seed, ed.steps, ed.cfg,
+                             ed.sampler, ed.foot_lock], api_name="edit_generated", preprocess=False, queue=False)
         _wire_control(h, ctl, generated, state, settings)
         _wire_real(h, real, state, settings)
         demo.unload(h["unload"])
@@ -166,8 +169,9 @@ def _wire_edit(h: dict, ed, state, settings: Settings) -> None:
           [ed.source, ed.mode, ed.target, ed.reweight_word], ed.reweight_word, api_name="edit_words",
           preprocess=False, **quick)
     ed.auto_length.input(h["length_mode"], ed.auto_length, ed.seconds, api_name="edit_length_mode", **quick)
-    ed.sampler.change(h["sampler_steps"], ed.sampler, ed.steps, api_name="edit_sampler_steps", preprocess=False,
-                      **quick)
+    # the user's choice of sampler only: "Edit this motion" sets the sampler and its steps together
+    ed.sampler.input(h["sampler_steps"], ed.sampler, ed.steps, api_name="edit_sampler_steps", preprocess=False,
+                     **quick)
     edited = gr.on([ed.button.click], h["edit"], inputs=ed.inputs + [state],
                    outputs=[state, ed.video, ed.summary, ed.word, ed.source_heatmap, ed.edited_heatmap, ed.downloads],
                    api_name="edit", preprocess=False, concurrency_id="model", show_progress_on=[ed.video],

@@ -129,7 +129,9 @@ def edit_markdown(result: Result, word_map: list[int]) -> str:
     return (warnings_block(src, edited) + line[:k] + line[k].upper() + line[k + 1:]
             + f".  \n**{quoted(r.edited_prompt)}**: source {src.seconds:.1f} s ({src.frames} frames), edited "
             f"{edited.seconds:.1f} s ({edited.frames} frames), {_sampling(r, r.sampler)}.  \n{moved}  \n"
-            + foot_refine_line(edited) + foot_lock_line(edited) + _timing(result, "Sampled both branches"))
+            + foot_refine_line(edited) + foot_lock_line(edited)
+            + _timing(result, "Sampled the edited branch (the source's sampling replayed)"
+                      if edited.info.get("source_replayed") else "Sampled both branches"))
 
 
 def describe_control(result: Result) -> str:
