@@ -282,6 +282,23 @@ def test_an_edit_of_a_recorded_source_runs_the_edited_branch_alone_to_the_same_m
     assert again.params == first.params
 
 
+def test_a_replayed_edit_runs_self_attention_fused_once_the_injection_is_over(tiny_model, monkeypatch):
+    from salad.pipeline import load_pipeline
+    pipe = load_pipeline(tiny_model, bf16=False)
+    pipe.set_foot_refine(0)
+    args = dict(seed=1, seconds=1.6, steps=10, mode="mirror", mirror="all", self_inject=0.3)
+    seen = []
+    edit_call = AttentionEdit.__call__
+    monkeypatch.setattr(AttentionEdit, "__call__",
+                        lambda self, call: seen.append((call.kind, self.counter.step)) or edit_call(self, call))
+    pipe.edit("a person walks forward", **args)                 # sampled: every map drawn, for the recording
+    assert {s for k, s in seen if k != "cross"} == set(range(10))
+    seen.clear()
+    again = pipe.edit("a person walks forward", **args)         # replayed: self-attention maps for 3 steps only
+    assert again.edited.info["source_replayed"]
+    assert {s for k, s in seen if k != "cross"} == {0, 1, 2} and {s for k, s in seen if k == "cross"} == set(range(10))
+
+
 def test_an_edit_replays_the_generated_motion_it_starts_from_and_nothing_else(tiny_model):
     from salad.editing.replay import SourceRun
     from salad.pipeline import load_pipeline

@@ -71,7 +71,10 @@ class StepCounter:
         self._first: tuple[str, int] | None = None
 
     def see(self, call: AttentionCall) -> None:
-        key = (call.kind, call.layer)
+        self.tick(call.kind, call.layer)
+
+    def tick(self, kind: str, layer: int) -> None:
+        key = (kind, layer)
         if self._first is None:
             self._first = key
         if key == self._first:

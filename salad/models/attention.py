@@ -40,6 +40,9 @@ class AttentionCall:
 
 
 class AttentionController(Protocol):
+    """Returns the maps to use. It may also have wants(kind, layer) -> bool, asked before each call:
+    False runs that call fused, without maps and without calling the controller."""
+
     def __call__(self, call: AttentionCall) -> torch.Tensor: ...
 
 
@@ -69,15 +72,18 @@ class Attention(nn.Module):
         q, k, v = self._heads(self.to_q(x)), self._heads(self.to_k(context)), self._heads(self.to_v(context))
         mask = None if key_mask is None else key_mask[:, None, None, :]
         p_drop = self.dropout if self.training else 0.0
-        if self.controller is None and p_drop == 0.0:
+        controller = self.controller
+        if controller is not None and hasattr(controller, "wants") and not controller.wants(self.kind, self.layer):
+            controller = None
+        if controller is None and p_drop == 0.0:
             out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
         else:   # explicit maps: a controller observes them, or training drops some (cheaply, see dropout.py)
             scores = (q @ k.transpose(-2, -1)) * (q.shape[-1] ** -0.5)
             if mask is not None:
                 scores = scores.masked_fill(~mask, float("-inf"))
             probs = scores.softmax(dim=-1)
-            if self.controller is not None:
-                probs = self.controller(AttentionCall(self.kind, self.layer, probs, *shape))
+            if controller is not None:
+                probs = controller(AttentionCall(self.kind, self.layer, probs, *shape))
             probs = dropout(probs, p_drop)
             out = probs.to(v.dtype) @ v
         N, H, L, Dh = out.shape
