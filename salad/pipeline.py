@@ -570,7 +570,7 @@ class Pipeline:
         except _LengthLeftBand as left:
             if return_attention and self.records(sampler):      # an edit of it goes straight to the band's edge
                 self.source_runs.put(self.source_key(prompt, frames, seed, steps, cfg, sampler),
-                                     SourceRun(held_frames=left.frames))
+                                     SourceRun(held_frames=left.frames, band=band))
             motions = run(left.frames, length="held", progress=continued(progress, left.steps))
             spent = left.steps + steps
         for b, m in enumerate(motions):
@@ -796,8 +796,10 @@ class Pipeline:
 
         key = self.source_key(source_prompt, frames, seed, steps, cfg, sampler)
         replay = self.source_runs.get(key) if self.records(sampler) else None
-        if replay is not None and replay.held_frames is not None:      # the source's length left the band
-            return again_at(replay.held_frames, 0)
+        if replay is not None and replay.held_frames is not None:
+            if replay.band == band:         # the source's length left this band: straight to its edge
+                return again_at(replay.held_frames, 0)
+            replay = None                   # the same sampling held to no band ("model" length) runs whole
 
         text = self.sampler_text([source_prompt, target_prompt], sampler)
         plan = build_edit(text, steps, canvas, spec, source_prompt, target_prompt,
@@ -818,7 +820,7 @@ class Pipeline:
                                  shared_noise=True, on_step=on_step, blend=plan.blend, watch=watch)
         except _LengthLeftBand as left:
             if plan.recorder is not None:
-                self.source_runs.put(key, SourceRun(held_frames=left.frames))
+                self.source_runs.put(key, SourceRun(held_frames=left.frames, band=band))
             return again_at(left.frames, left.steps)
         if replay is not None:
             z = torch.cat((replay.latents[-1].to(z), z))

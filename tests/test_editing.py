@@ -329,9 +329,13 @@ def test_an_edit_replays_the_generated_motion_it_starts_from_and_nothing_else(ti
     np.testing.assert_allclose(mirrored.edited.joints,
                                pipe.edit(prompt, mode="mirror", mirror="all", **args).edited.joints, atol=1e-4)
     # a source whose automatic length left its band is sampled at the band's edge straight away
-    pipe.source_runs.put(pipe.source_key(prompt, None, 5, 6, 7.5, "ddim"), SourceRun(held_frames=40))
+    pipe.auto_length_band = lambda text: (32, 64)      # (the tiny model ships no length prior)
+    pipe.source_runs.put(pipe.source_key(prompt, None, 5, 6, 7.5, "ddim"), SourceRun(held_frames=40, band=(32, 64)))
     held = pipe.edit(prompt, "a person runs forward", seed=5, steps=6)
     assert held.source.frames == held.edited.frames == 40 and held.edited.info["length"] == "held"
+    # the model's own length holds to no band: the same sampling runs whole
+    free = pipe.edit(prompt, "a person runs forward", seed=5, steps=6, seconds="model")
+    assert free.edited.info["length"] == "model" and not free.edited.info["source_replayed"]
 
 
 def test_recorded_source_runs_are_bounded():

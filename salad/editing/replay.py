@@ -25,12 +25,13 @@ class SourceRun:
     """One sampling of a source prompt: maps[(step, kind, layer)] are the probabilities its conditional
     row's attention used (cross: (1, heads, T'*J, L); temporal: (J, heads, T', T'); skeletal: (T', heads,
     J, J)), latents[i] its latents after step i + 1, attention its word-level cross-attention. An auto-length
-    run stopped because its length left the band records that instead: held_frames, the length to sample at."""
+    run stopped because its length left `band` records that instead: held_frames, the length to sample at."""
 
     maps: dict[tuple[int, str, int], torch.Tensor] = field(default_factory=dict)
     latents: list[torch.Tensor] = field(default_factory=list)
     attention: AttentionMaps | None = None
     held_frames: int | None = None
+    band: tuple[int, int] | None = None
 
     def probs(self, step: int, call: AttentionCall) -> torch.Tensor:
         """The recorded maps standing in for the source row's in `call` (an edited-branch forward). A cross
@@ -44,9 +45,6 @@ class SourceRun:
 
     def maps_at(self, frames: int) -> AttentionMaps | None:
         return None if self.attention is None else replace(self.attention, frames=frames)
-
-    def nbytes(self) -> int:
-        return sum(t.numel() * t.element_size() for t in [*self.maps.values(), *self.latents])
 
 
 class SourceRecorder(RowAddressed):
