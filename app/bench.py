@@ -167,6 +167,7 @@ def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads:
                 [lambda e=e, i=i: edit(*e, 10 + i) for i, e in enumerate(EDITS)], "/edit_video")
             report["edit_same_source_s"], report["edit_same_source_full_s"] = series(
                 [lambda e=e, i=i: edit(*e, 10 + i) for i, e in enumerate(EDITS_AGAIN)], "/edit_video")
+
             def edit_generated(mode: str, target: str, mirror: str, seed: int) -> tuple[float, float]:
                 two_steps(lambda: generate(PROMPTS[0], seed), "/generate_video")     # the motion, untimed
                 source, _, auto, seconds, seed, steps_, cfg, sampler_, lock = (

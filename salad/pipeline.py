@@ -592,7 +592,8 @@ class Pipeline:
         rows = self.conditional_rows(batch, sampler)
         store = AttentionStore(text, rows=rows, frames=canvas) if return_attention else None
         # a motion whose maps are asked for is likely edited next: its run is kept for the edit to replay
-        recorder = SourceRecorder(rows, observers=[store]) if store and batch == 1 and self.records(sampler) else None
+        recorder = (SourceRecorder(rows, observers=[store])
+                    if store is not None and batch == 1 and self.records(sampler) else None)
         on_step = _stepped(progress, recorder)
         with self.network(sampler).controlled(recorder or store):
             z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, on_step=on_step,

@@ -349,7 +349,7 @@ def guard_all(handlers: Handlers) -> dict:
     """The handlers wrapped by `guarded`, by name."""
     names = ("length_mode", "sampler_steps", "real_sampler", "generate", "generate_video", "attention",
              "attention_video", "edit_generated", "edit_mode", "edit_words", "edit", "edit_video", "edit_files",
-             "edit_attention", "control_task", "control_preview", "control", "control_video", "real_mode", "real_clip", "real_upload",
-             "edit_real")
+             "edit_attention", "control_task", "control_preview", "control", "control_video", "real_mode",
+             "real_clip", "real_upload", "edit_real")
     units = {f"bvh_units_{kind}": guarded(handlers.bvh_units(kind)) for kind in ("generate", "edit", "control", "real")}
     return {n: guarded(getattr(handlers, n)) for n in names} | units | {"unload": handlers.unload}

@@ -100,7 +100,7 @@ class RowAddressed:
     it passes the maps on to) address, sits n places lower."""
 
     _dropped = 0
-    observers: list = []
+    observers: tuple | list = ()
 
     def own_lowest_row(self) -> int:
         raise NotImplementedError
