@@ -313,7 +313,7 @@ def test_an_edit_replays_the_generated_motion_it_starts_from_and_nothing_else(ti
     fresh = pipe.edit(prompt, "a person runs forward", **args)
     assert not fresh.edited.info["source_replayed"]
     np.testing.assert_allclose(res.edited.joints, fresh.edited.joints, atol=1e-3)
-    # another seed, step count or sampler setting is another source: sampled, not replayed
+    # another seed or sampler setting is another source: sampled, not replayed
     assert not pipe.edit(prompt, "a person runs forward", **dict(args, seed=4)).edited.info["source_replayed"]
     pipe.set_sampling(cfg_rescale=0.0)
     assert not pipe.edit(prompt, "a person runs forward", **args).edited.info["source_replayed"]
