@@ -22,9 +22,11 @@ download) in its place. The rows:
   kept (nothing is resampled), while the previous word's tinted video renders as it does on the
   page (target 0.5 s).
 
-The sampler is the teacher's DDIM unless --sampler says otherwise (consistency: the model's
-distilled student, 4 steps; with dpm the guided control samples with DDIM, as its tab offers no
-DPM-Solver++). The table says which targets are met. Run it on a quiet machine.
+The samplers are the studio's defaults (app.studio.Studio: the teacher's dpm-sde for text, and for
+guided control the distilled student where the model's checkpoint prefers it, else DDIM) unless
+--sampler names one (consistency: the model's distilled student, 4 steps; with dpm or dpm-sde the
+guided control samples with DDIM, as its tab offers neither). The table says which targets are met.
+Run it on a quiet machine.
 """
 from __future__ import annotations
 
@@ -104,8 +106,9 @@ def _video_url(value) -> str:
 
 def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads: int | None,
         fetch_all: bool = False) -> dict:
-    """steps=None: the sampler's default (salad.pipeline.DEFAULT_STEPS: 50 for ddim and dpm, 4 for
-    the consistency student). fetch_all: download every file a response returns, not just its video."""
+    """sampler "auto": the studio's defaults for text and for guided control; steps=None: each sampler's
+    default (salad.pipeline.DEFAULT_STEPS), else these steps for both. fetch_all: download every file a response returns, not just its
+    video."""
     from gradio_client import Client
 
     from .server import create_app, launch
@@ -117,9 +120,15 @@ def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads:
         studio_app = create_app(settings)
         if studio_app.studio is None:
             raise SystemExit(f"the studio could not load a model: {studio_app.error}")
+        studio, asked = studio_app.studio, sampler
+        if sampler == "auto":
+            sampler, guided = studio.default_sampler, studio.control_sampler
+        else:
+            guided = sampler if sampler in ("ddim", "consistency") else "ddim"     # no DPM-Solver++ guidance
         try:
             # the pipeline's own check: the default steps, and a clear refusal of a student the model lacks
-            steps, _, sampler, _ = studio_app.studio.pipe.check_sampling(steps, CFG, sampler)
+            guided_steps = studio.pipe.check_sampling(steps, CFG, guided)[0]
+            steps, _, sampler, _ = studio.pipe.check_sampling(steps, CFG, sampler)
         except ValueError as exc:
             studio_app.close()
             raise SystemExit(f"cannot benchmark the {sampler} sampler: {exc}") from None
@@ -141,12 +150,11 @@ def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads:
                 return shown(client.predict(PROMPTS[0], mode, target, None, "", 2.0, mirror, 0.2, "auto", True, 4.0,
                                             seed, steps, CFG, sampler, True, api_name="/edit"))
 
-            guided = sampler if sampler in ("ddim", "consistency") else "ddim"     # no DPM-Solver++ guidance
             path_seconds = min(CONTROL_SECONDS, float(studio_app.studio.pipe.max_seconds))
 
             def control(preset: str, seed: int):
                 return shown(client.predict(CONTROL_PROMPT, "path", preset, path_seconds, 1.0, None, "", "first, last",
-                                            1.0, seed, steps, CFG, True, guided, api_name="/control"))
+                                            1.0, seed, guided_steps, CFG, True, guided, api_name="/control"))
 
             def two_steps(call, video_api: str) -> tuple[float, float]:
                 """(seconds to the preview, seconds to the full video: the preview call plus the video call)."""
@@ -185,7 +193,8 @@ def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads:
             http.close()
             studio_app.close()
             remove_download_leftovers(started)
-    return {"settings": {"model": model or "embedded", "steps": steps, "sampler": sampler, "bf16": bf16,
+    return {"settings": {"model": model or "embedded", "steps": steps, "sampler": sampler, "asked": asked,
+                         "control_sampler": guided, "control_steps": guided_steps, "bf16": bf16,
                          "threads": threads, "fetch_all": fetch_all}} | report | {
             "targets_s": {"generate": GENERATE_TARGET_S, "edit": EDIT_TARGET_S, "control": CONTROL_TARGET_S,
                           "word_click": WORD_TARGET_S}}
@@ -211,7 +220,8 @@ def word_clicks(client, generated) -> list[float]:
 def format_table(report: dict) -> str:
     s = report["settings"]
     fetched = "every returned file fetched" if s.get("fetch_all") else "videos fetched"
-    lines = [f"studio latency, {s['model']} model, {s['sampler']}-{s['steps']}, "
+    control = f", control {s['control_sampler']}-{s['control_steps']}" if "control_sampler" in s else ""
+    lines = [f"studio latency, {s['model']} model, {s['sampler']}-{s['steps']}{control}, "
              f"{'bf16' if s['bf16'] else 'fp32'}, threads {s['threads'] or 'default'}, {fetched}", "",
              f"{'request':36s} {'median s':>9s} {'max s':>7s} {'target s':>9s}  met"]
     for name, key, target in ROWS:
@@ -227,9 +237,11 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m app.bench", description=__doc__.splitlines()[0])
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--steps", type=int, default=None,
-                   help="sampling steps (default: the sampler's, 50 for ddim and dpm, 4 for consistency)")
-    p.add_argument("--sampler", choices=("ddim", "dpm", "consistency"), default="ddim",
-                   help="consistency: the model's distilled student")
+                   help="sampling steps (default: each sampler's, 50 for ddim and dpm, 25 for dpm-sde, 4 for "
+                        "consistency)")
+    p.add_argument("--sampler", choices=("auto", "dpm-sde", "ddim", "dpm", "consistency"), default="auto",
+                   help="auto: the studio's defaults (text and guided control apart); consistency: the model's "
+                        "distilled student")
     p.add_argument("--bf16", action="store_true", help="bf16 autocast (the studio's default is fp32)")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--fetch-all", action="store_true",

@@ -32,9 +32,9 @@ def parse_args(argv: list[str] | None = None) -> Settings:
                         "motion tab offers (default: data/bandai-hml when it has been built)")
     p.add_argument("--no-clips", action="store_true", help="offer no test clips in the Real motion tab")
     p.add_argument("--sampler", choices=STUDIO_SAMPLERS, default=DEFAULT_SAMPLER,
-                   help="the panels' default sampler (default auto: ddim, the 50-step teacher, and for guided "
-                        "control the distilled student, 4 steps, when the model has one); consistency asks for the "
-                        "student everywhere")
+                   help="the panels' default sampler (default auto: the teacher in 25 steps of dpm-sde, and for "
+                        "guided control the distilled student, 4 steps, when the model has one, else DDIM-50); "
+                        "consistency asks for the student everywhere; ddim for the 50-step teacher")
     a = p.parse_args(argv)
     if a.no_clips and a.clips is not None:
         p.error("--clips and --no-clips exclude each other")

@@ -5,8 +5,11 @@ from app.bench import format_table, run
 def test_studio_latency_bench_times_every_request(tiny_model):
     from app.bench import ROWS
 
-    report = run(str(tiny_model), steps=2, sampler="ddim", bf16=False, threads=1)
+    report = run(str(tiny_model), steps=2, sampler="auto", bf16=False, threads=1)
     assert report["settings"]["fetch_all"] is False, "the page fetches the videos only"
+    # the studio's defaults: the teacher's dpm-sde for text, DDIM for guided control (the model has no student)
+    assert [report["settings"][k] for k in ("sampler", "control_sampler", "steps", "control_steps")] == [
+        "dpm-sde", "ddim", 2, 2]
     for _, key, _ in ROWS:
         assert report[key] and all(t > 0 for t in report[key]), key
     for preview, full in (("generate_s", "generate_full_s"), ("edit_first_s", "edit_first_full_s"),
@@ -16,6 +19,7 @@ def test_studio_latency_bench_times_every_request(tiny_model):
     for text in ("generate → preview video", "generate → full video", "edit again, same source → preview",
                  "edit this motion → preview", "control (path) → preview video", "word click → heatmap"):
         assert text in table, text
+    assert "dpm-sde-2, control ddim-2" in table.splitlines()[0]
     full_row = next(line for line in table.splitlines() if line.startswith("generate → full video"))
     assert full_row.split()[-1] == "-", "the full-video rows have no target"
 
@@ -48,6 +52,8 @@ def test_steps_default_to_the_samplers_and_a_missing_student_is_refused(tiny_mod
     seen = []
     monkeypatch.setattr(bench, "run", lambda *args: seen.append(args) or {})
     monkeypatch.setattr(bench, "format_table", lambda report: "")
+    assert bench.main([]) == 0
+    assert seen[-1][1:3] == (None, "auto"), "the studio's own defaults"
     assert bench.main(["--sampler", "consistency"]) == 0
     assert seen[-1][1:3] == (None, "consistency"), "steps left to the pipeline: the sampler's default"
     monkeypatch.undo()

@@ -141,14 +141,16 @@ def test_real_edit_with_the_student_runs_no_inversion(client, walk_bvh):
 
 def test_the_studio_offers_the_student_and_its_steps(server, client):
     p = props(server[1].demo)
-    assert [c[1] for c in p["sampler"]["choices"]] == ["consistency", "ddim", "dpm"]
+    assert [c[1] for c in p["sampler"]["choices"]] == ["consistency", "dpm-sde", "ddim", "dpm"]
     assert p["sampler"]["choices"][0][0] == "fast: distilled student, 4 steps"
-    assert p["sampler"]["choices"][1][0] == "quality: DDIM, 50 steps"
-    assert [c[1] for c in p["edit-sampler"]["choices"]] == ["consistency", "ddim", "dpm"]
+    assert p["sampler"]["choices"][1][0] == "standard: SDE-DPM-Solver++, 25 steps"
+    assert p["sampler"]["choices"][2][0] == "quality: DDIM, 50 steps"
+    assert [c[1] for c in p["edit-sampler"]["choices"]] == ["consistency", "dpm-sde", "ddim", "dpm"]
     for elem in ("control-sampler", "real-sampler"):
         assert p[elem]["visible"] is not False and [c[1] for c in p[elem]["choices"]] == ["ddim", "consistency"]
-    # the default (auto) starts generating on the teacher and guided control on the student, as the model has one
-    assert p["sampler"]["value"] == "ddim" and p["steps"]["value"] == 50
+    # the default (auto) starts generating on the teacher (dpm-sde) and guided control on the student, as the
+    # model has one
+    assert p["sampler"]["value"] == "dpm-sde" and p["steps"]["value"] == 25
     assert p["control-sampler"]["value"] == "consistency" and p["control-steps"]["value"] == 4
     # picking a sampler sets its default steps (and the student's range)
     for api in ("/sampler_steps", "/edit_sampler_steps", "/control_sampler_steps"):
@@ -187,28 +189,34 @@ def test_the_default_sampler_of_each_panel(student_pipe, pipe, tmp_path, caplog,
         # the default (auto): the student where its checkpoint records that it was measured fit (here, as
         # for the embedded one: guided control), else the teacher, quietly, as where there is no student
         monkeypatch.delitem(student_pipe.student_info, "default_for")
-        assert (Studio(student_pipe, ws).default_sampler, Studio(student_pipe, ws).control_sampler) == ("ddim", "ddim")
+        assert (Studio(student_pipe, ws).default_sampler, Studio(student_pipe, ws).control_sampler) == ("dpm-sde",
+                                                                                                        "ddim")
         monkeypatch.setitem(student_pipe.student_info, "default_for", ["text", "control"])
         assert Studio(student_pipe, ws).default_sampler == "consistency"
         monkeypatch.setitem(student_pipe.student_info, "default_for", ["control"])
         auto = Studio(student_pipe, ws)
-        assert (auto.default_sampler, auto.control_sampler) == ("ddim", "consistency")
+        assert (auto.default_sampler, auto.control_sampler) == ("dpm-sde", "consistency")
         p = props(build_studio(auto, Settings(tmp_dir=tmp_path)))
-        for radio, steps, sampler, n in (("sampler", "steps", "ddim", 50), ("edit-sampler", "edit-steps", "ddim", 50),
+        for radio, steps, sampler, n in (("sampler", "steps", "dpm-sde", 25),
+                                         ("edit-sampler", "edit-steps", "dpm-sde", 25),
                                          ("control-sampler", "control-steps", "consistency", 4),
                                          ("real-sampler", "real-steps", "ddim", 50)):
             assert p[radio]["value"] == sampler and p[steps]["value"] == n, radio
         with caplog.at_level(logging.WARNING, logger="salad.studio"):
             plain = Studio(pipe, ws)
-        assert (plain.default_sampler, plain.control_sampler) == ("ddim", "ddim")
+        assert (plain.default_sampler, plain.control_sampler) == ("dpm-sde", "ddim")
         assert "no consistency student" not in caplog.text
-        # asking for the student of a model without one falls back to ddim, with a warning
+        # asking for the student of a model without one falls back to the teacher, with a warning
         with caplog.at_level(logging.WARNING, logger="salad.studio"):
             studio = Studio(pipe, ws, sampler="consistency")
-        assert (studio.default_sampler, studio.control_sampler) == ("ddim", "ddim")
+        assert (studio.default_sampler, studio.control_sampler) == ("dpm-sde", "ddim")
         assert "no consistency student" in caplog.text
         p = props(build_studio(studio, Settings(tmp_dir=tmp_path)))
-        assert p["sampler"]["value"] == "ddim" and p["steps"]["value"] == 50
+        assert p["sampler"]["value"] == "dpm-sde" and p["steps"]["value"] == 25
+        assert p["control-steps"]["value"] == 50 and p["real-steps"]["value"] == 50
+        # the quality choice: every panel on DDIM-50
+        p = props(build_studio(Studio(pipe, ws, sampler="ddim"), Settings(tmp_dir=tmp_path)))
+        assert (p["sampler"]["value"], p["steps"]["value"], p["edit-steps"]["value"]) == ("ddim", 50, 50)
     finally:
         ws.close()
 
@@ -218,7 +226,7 @@ def test_the_sampler_setting(tmp_path):
 
     assert Settings().sampler == "auto" and parse_args([]).sampler == "auto"
     assert parse_args(["--sampler", "consistency"]).sampler == "consistency"
-    with pytest.raises(ValueError, match="sampler must be one of auto, ddim, dpm, consistency"):
+    with pytest.raises(ValueError, match="sampler must be one of auto, dpm-sde, ddim, dpm, consistency"):
         Settings(sampler="euler")
     with pytest.raises(SystemExit):
         parse_args(["--sampler", "euler"])
@@ -243,8 +251,8 @@ def test_validation_carries_the_sampler(student_pipe, walk_bvh, tmp_path):
 
 def test_without_a_student_consistency_is_neither_offered_nor_accepted(plain_server, plain_client, walk_bvh):
     p = props(plain_server[1].demo)
-    assert [c[1] for c in p["sampler"]["choices"]] == ["ddim", "dpm"]
-    assert [c[1] for c in p["edit-sampler"]["choices"]] == ["ddim", "dpm"]
+    assert [c[1] for c in p["sampler"]["choices"]] == ["dpm-sde", "ddim", "dpm"]
+    assert [c[1] for c in p["edit-sampler"]["choices"]] == ["dpm-sde", "ddim", "dpm"]
     assert p["control-sampler"]["visible"] is False and p["real-sampler"]["visible"] is False
     assert p["control-steps"]["label"] == "Diffusion steps (DDIM)"
     for call in (lambda: generate(plain_client), lambda: edit(plain_client), lambda: control(plain_client),

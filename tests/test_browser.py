@@ -297,7 +297,7 @@ def test_edit_this_motion_opens_the_edit_tab_on_the_generated_motion(studio_url,
         return t && t.offsetParent !== null && t.value === prompt; }""", arg=PROMPT)
     assert page.locator("#edit-target textarea").input_value() == PROMPT
     page.locator("#edit-tab").get_by_text("Sampling", exact=True).click()
-    steps = re.search(r"(\d+) DDIM steps", page.locator("#summary").inner_text()).group(1)
+    steps = re.search(r"(\d+) SDE-DPM-Solver\+\+ steps", page.locator("#summary").inner_text()).group(1)
     assert page.locator("#edit-steps input[type=number]").input_value() == steps
     assert page.locator("#edit-seed input").input_value() == "5"
     page.locator("#edit-target textarea").fill(PROMPT.replace("right", "left"))

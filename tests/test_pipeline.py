@@ -222,6 +222,33 @@ def test_ancestral_ddim_is_seeded_and_an_edit_source_is_the_plain_generation(tin
     assert code == 2 and "ddim_eta must be a number in [0, 1], got 2.0" in err
 
 
+def test_sde_dpm_solver_draws_seeded_noise_that_edit_branches_share_and_replays(tiny_model):
+    from salad.diffusion.sampling import describe_settings
+    pipe = load_pipeline(tiny_model, bf16=False)
+    pipe.set_foot_refine(0)
+    pipe.set_projections(0)        # the sampler's own latents: the tiny VAE's projection pulls motions together
+    walk = dict(seconds=1.6, seed=4, steps=6, foot_lock=False, sampler="dpm-sde")
+    a, b = pipe.generate("a person walks forward", **walk), pipe.generate("a person walks forward", **walk)
+    np.testing.assert_array_equal(a.joints, b.joints)
+    assert not np.allclose(pipe.generate("a person walks forward", **{**walk, "seed": 5}).joints, a.joints, atol=1e-3)
+    deterministic = pipe.generate("a person walks forward", **{**walk, "sampler": "dpm"})
+    assert not np.allclose(deterministic.joints, a.joints, atol=1e-3), "fresh noise at each step"
+    # both edit branches draw the noise a plain generation of the source draws, and a replay of the recorded
+    # source (the multistep solver's history kept for the edited rows alone) edits to the same motion
+    first = pipe.edit("a person walks forward", mode="mirror", mirror="all", **walk)
+    np.testing.assert_allclose(first.source.joints, a.joints, atol=1e-3)
+    again = pipe.edit("a person walks forward", mode="mirror", mirror="all", **walk)
+    assert again.edited.info["source_replayed"] and not first.edited.info["source_replayed"]
+    np.testing.assert_allclose(again.edited.joints, first.edited.joints, atol=1e-4)
+    calls = []
+    forward = pipe.denoiser.forward
+    pipe.denoiser.forward = lambda z, *a, **k: calls.append(z.shape[0]) or forward(z, *a, **k)
+    pipe.generate("a person walks forward", seconds=1.6, sampler="dpm-sde")
+    assert len(calls) == 25, "its default steps"
+    words = describe_settings({"sampler": "dpm-sde", **pipe.sampler_settings("dpm-sde")})
+    assert "fresh noise at every step" in words and "eta" not in words
+
+
 def test_a_sampler_started_part_of_the_way_down_finishes_as_the_whole_run_would(tiny_model):
     import torch
     pipe = load_pipeline(tiny_model)

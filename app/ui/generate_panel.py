@@ -28,30 +28,34 @@ def foot_lock_checkbox(elem_id: str) -> gr.Checkbox:
     return gr.Checkbox(value=True, label=FOOT_LOCK_LABEL, info=FOOT_LOCK_INFO, elem_id=elem_id)
 
 
-# The sampler choices: with a distilled student, the fast student and the 50-step teacher as the quality choice.
+# The sampler choices: the teacher's SDE-DPM-Solver++ (half DDIM's steps, the same motions within seed noise) as the
+# standard, the 50-step DDIM teacher as the quality choice, and with a distilled student the fast student.
 FAST_LABEL = f"fast: distilled student, {SAMPLER_STEPS['consistency']} steps"
+STANDARD_LABEL = f"standard: SDE-DPM-Solver++, {SAMPLER_STEPS['dpm-sde']} steps"
 QUALITY_LABEL = f"quality: DDIM, {SAMPLER_STEPS['ddim']} steps"
 DPM_LABEL = "DPM-Solver++"
-DPM_INFO = "DPM-Solver++: fewer steps for a close result (30 steps: 16 mm from the 250-step solution, DDIM-50: 18 mm)"
+SAMPLER_LABELS = (("consistency", FAST_LABEL), ("dpm-sde", STANDARD_LABEL), ("ddim", QUALITY_LABEL),
+                  ("dpm", DPM_LABEL))
+SAMPLER_INFO = {
+    "consistency": lambda pipe: (f"fast: the consistency-distilled student (CFG {pipe.guidance_range[0]:g} to "
+                                 f"{pipe.guidance_range[1]:g}, at most {CONSISTENCY_GRID} steps; 4 is its best), close "
+                                 "to the teacher in a fifteenth of the time (README, Results)"),
+    "dpm-sde": lambda pipe: (f"standard: the teacher in {SAMPLER_STEPS['dpm-sde']} steps of SDE-DPM-Solver++, the "
+                             "same motions as DDIM's within seed noise in half the time"),
+    "ddim": lambda pipe: f"quality: the teacher in {SAMPLER_STEPS['ddim']} DDIM steps, the paper's sampler",
+    "dpm": lambda pipe: "DPM-Solver++: deterministic, fewer steps for a close result (30 steps: 16 mm from the "
+                        "250-step solution, DDIM-50: 18 mm)",
+}
 
 
 def sampler_choices(samplers) -> list[tuple[str, str]]:
-    """(label, sampler) of the offered samplers, the student first; plain names without a student."""
-    if "consistency" not in samplers:
-        return [(label, s) for label, s in (("DDIM", "ddim"), (DPM_LABEL, "dpm")) if s in samplers]
-    return [(label, s) for label, s in ((FAST_LABEL, "consistency"), (QUALITY_LABEL, "ddim"), (DPM_LABEL, "dpm"))
-            if s in samplers]
+    """(label, sampler) of the offered samplers: the student, the standard, the quality choice, DPM-Solver++."""
+    return [(label, s) for s, label in SAMPLER_LABELS if s in samplers]
 
 
 def sampler_info(pipe, samplers) -> str:
     """What the sampler radio says under its choices."""
-    if "consistency" not in samplers:
-        return DPM_INFO if "dpm" in samplers else ""
-    lo, hi = pipe.guidance_range
-    return (f"fast: the consistency-distilled student (CFG {lo:g} to {hi:g}, at most {CONSISTENCY_GRID} steps; "
-            "4 is its best), close to the teacher in a fifteenth of the time (README, Results); "
-            f"quality: the {SAMPLER_STEPS['ddim']}-step DDIM teacher"
-            + ("; DPM-Solver++: fewer teacher steps for a close result" if "dpm" in samplers else ""))
+    return "; ".join(SAMPLER_INFO[s](pipe) for s, _ in SAMPLER_LABELS if s in samplers)
 
 
 def guided_sampler(samplers, sampler: str) -> tuple[list[tuple[str, str]], str, bool]:

@@ -28,12 +28,15 @@ def _timing(result: Result, sampled: str) -> str:
     return f"{sampled} in {t['sample_s']:.1f} s, rendered in {t['render_s']:.1f} s{refined}{waited}."
 
 
+SAMPLER_NAMES = {"ddim": "DDIM", "dpm": "DPM", "dpm-sde": "SDE-DPM-Solver++"}
+
+
 def sampling_text(sampler: str, steps: int) -> str:
     """The sampler and its steps, as a summary names them: "50 DDIM steps", "4 consistency steps
     (distilled student)"."""
     if sampler == "consistency":
         return f"{steps} consistency step{'s' if steps != 1 else ''} (distilled student)"
-    return f"{steps} {sampler.upper()} step{'s' if steps != 1 else ''}"
+    return f"{steps} {SAMPLER_NAMES.get(sampler, sampler.upper())} step{'s' if steps != 1 else ''}"
 
 
 def _sampling(req, sampler: str | None = None) -> str:

@@ -57,8 +57,9 @@ def device_of(a):
 
 
 # Spelled out to keep the CLI free of torch; a test checks them against salad.diffusion.schedule.SAMPLERS.
-SAMPLER_CHOICES = ("ddim", "dpm", "consistency")
+SAMPLER_CHOICES = ("ddim", "dpm", "dpm-sde", "consistency")
 SAMPLER_HELP = {"ddim": "DDIM, the paper's sampler", "dpm": "DPM-Solver++",
+                "dpm-sde": "SDE-DPM-Solver++, fresh noise at each step like DDIM's default, in half its steps",
                 "consistency": "the consistency-distilled student: 1-4 steps, one forward each"}
 
 
@@ -68,7 +69,7 @@ def add_sampling(parser: argparse.ArgumentParser, samplers: tuple[str, ...] = SA
     --ddim-eta, --cfg-rescale and --cfg-cutoff, --projections and --foot-refine (set on the pipeline with
     apply_sampling)."""
     parser.add_argument("--steps", type=int, default=None,
-                        help="denoising steps (default: 50 for ddim and dpm, 4 for consistency)")
+                        help="denoising steps (default: 50 for ddim and dpm, 25 for dpm-sde, 4 for consistency)")
     parser.add_argument("--cfg", type=float, default=7.5,
                         help="classifier-free guidance scale (the consistency student takes the range it learnt)")
     parser.add_argument("--sampler", choices=samplers, default="ddim",

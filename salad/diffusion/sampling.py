@@ -6,7 +6,7 @@ from typing import Callable
 
 import torch
 
-from .schedule import NoiseSchedule
+from .schedule import STOCHASTIC_SAMPLERS, NoiseSchedule
 
 # model(x (R, ...), t (R,)) -> model output (R, ...), R = rows of the batched forward.
 ModelFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -39,6 +39,8 @@ def describe_settings(settings: dict) -> str:
     parts = []
     if settings.get("sampler") != "consistency":
         parts = [f"eta {settings.get('ddim_eta', 0.0):g}"] if settings.get("sampler", "ddim") == "ddim" else []
+        if settings.get("sampler") in STOCHASTIC_SAMPLERS:
+            parts.append("fresh noise at every step")
         parts.append(f"CFG rescale {settings.get('cfg_rescale', 0.0):g}")
         if settings.get("cfg_cutoff", 0.0) > 0:
             parts.append(f"no guidance below t = {settings['cfg_cutoff'] * 1000:g}")
@@ -78,7 +80,7 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
     classifier-free guidance costs a single forward per step. `blend(x)` may change the
     latents after each step (an edit's held body parts); `on_step(i, n, x)` reports progress.
     eta > 0 ("ddim" only; 1 = ancestral) adds fresh noise at each step, drawn as fresh_noise
-    draws it from `generator` (shared_noise: one draw for every row).
+    draws it from `generator` (shared_noise: one draw for every row); "dpm-sde" always does.
     Steps at t < cfg_cutoff x T take the conditional prediction alone: by then the action is laid
     down, and guidance there mostly made the feet slide. If `model` has a `conditional` attribute
     (B rows -> their conditional prediction), those steps run it instead of the 2B-row forward.
@@ -112,6 +114,8 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
             watch(i + 1, schedule.to_x0_eps(x, out, tt[:x.shape[0]])[0])
         if eta > 0:
             x = sched.step(out, t, x, eta=eta, variance_noise=fresh_noise(x, generator, shared_noise)).prev_sample
+        elif sampler in STOCHASTIC_SAMPLERS:
+            x = sched.step(out, t, x, variance_noise=fresh_noise(x, generator, shared_noise)).prev_sample
         else:
             x = sched.step(out, t, x).prev_sample
         if blend is not None:

@@ -1,9 +1,11 @@
 """Noise schedule, training targets and samplers, built on diffusers' schedulers.
 
 The model predicts v (Salimans & Ho): v = sqrt(a) * eps - sqrt(1 - a) * x0, with a the
-cumulative alpha at t. Samplers are diffusers' DDIM (the paper's) and DPM-Solver++
-(a multistep solver that needs far fewer steps); "consistency" is diffusers' LCM schedule for a
-distilled student (salad/diffusion/consistency.py).
+cumulative alpha at t. Samplers are diffusers' DDIM (the paper's), DPM-Solver++ (a multistep
+solver that needs far fewer steps), its SDE form "dpm-sde" (SDE-DPM-Solver++(2M): fresh noise at
+every step like ancestral DDIM, whose first-order form it is, at about half the steps for the same
+motions); "consistency" is diffusers' LCM schedule for a distilled student
+(salad/diffusion/consistency.py).
 """
 from __future__ import annotations
 
@@ -12,7 +14,9 @@ from dataclasses import asdict, dataclass
 import torch
 from diffusers import DDIMScheduler, DDPMScheduler, DPMSolverMultistepScheduler, LCMScheduler
 
-SAMPLERS = ("ddim", "dpm", "consistency")
+SAMPLERS = ("ddim", "dpm", "dpm-sde", "consistency")
+# Samplers that draw fresh noise at every step whatever eta is.
+STOCHASTIC_SAMPLERS = ("dpm-sde",)
 # The student is distilled along the teacher's 50-step DDIM grid; it samples on that grid.
 CONSISTENCY_GRID = 50
 
@@ -113,7 +117,8 @@ class NoiseSchedule:
         elif name == "ddim":
             s = DDIMScheduler(**self._common, clip_sample=False, set_alpha_to_one=False, timestep_spacing=spacing)
         else:
-            s = DPMSolverMultistepScheduler(**self._common, algorithm_type="dpmsolver++", solver_order=2,
+            algorithm = "sde-dpmsolver++" if name == "dpm-sde" else "dpmsolver++"
+            s = DPMSolverMultistepScheduler(**self._common, algorithm_type=algorithm, solver_order=2,
                                             timestep_spacing=spacing, lower_order_final=True)
         if timesteps is None:
             s.set_timesteps(int(steps))
