@@ -215,6 +215,11 @@ def bench(out: Path, models=("embedded", "paper"), batches=(1, 16), quick: bool 
                                              steps=k, repeats=1 if quick else 5, seconds=seconds)
                                  for k in CONSISTENCY_STEPS]
         report["compiled"] = _subprocess("run_compiled", repeats=1 if quick else 5, seconds=seconds)
+        # the teacher as the studio samples text by default (app.studio.Studio)
+        from .pipeline import DEFAULT_STEPS
+        report["studio_standard"] = _subprocess("run_one", model="embedded", bf16=False, batch=1, sampler="dpm-sde",
+                                                steps=DEFAULT_STEPS["dpm-sde"], repeats=1 if quick else 3,
+                                                seconds=seconds)
     if "embedded" in models:
         acc = _subprocess("solver_accuracy", model="embedded", bf16=False, seeds=2 if quick else 4)
         report["solver_accuracy"] = acc
@@ -263,6 +268,11 @@ def format_table(report: dict) -> str:
             note = "" if fast.get("matched_ddim50") else " (the most accurate DPM setting; none matched DDIM-50)"
             lines.append(f"  embedded {fast['precision']} batch 1 with dpm-{fast['steps']}: "
                          f"{fast['ms_per_motion']:.0f} ms/motion{note}")
+    standard = report.get("studio_standard")
+    if standard:
+        lines += ["", "the teacher as the studio samples text (embedded, fp32, batch 1):"]
+        lines.append(f"  dpm-sde {standard['steps']} steps: {standard['ms_per_motion']:.0f} ms/motion"
+                     if "ms_per_motion" in standard else f"  {standard.get('error') or standard.get('skipped')}")
     student = report.get("consistency") or []
     if student:
         lines += ["", f"consistency student (embedded, fp32, batch 1, {report['motion']['seconds']:g} s motion; "

@@ -60,3 +60,12 @@ def test_the_table_shows_the_compiled_rows_against_the_target():
     assert "ddim 50 step(s): 706 ms/motion, 1.41x the matmul reference\n" in table + "\n"
     report["compiled"] = {"error": "RuntimeError: no C compiler"}
     assert "RuntimeError: no C compiler" in format_table(report)
+
+
+def test_the_table_shows_the_studio_standard_sampler_row():
+    report = {"machine": {"matmul_peak_gflop_s": {"fp32": 100.0, "bf16": None}, "cores": 2},
+              "motion": {"seconds": 6.0}, "runs": [],
+              "studio_standard": {"sampler": "dpm-sde", "steps": 25, "ms_per_motion": 431.2}}
+    assert "dpm-sde 25 steps: 431 ms/motion" in format_table(report)
+    report["studio_standard"] = {"error": "ValueError: no model"}
+    assert "ValueError: no model" in format_table(report)
