@@ -229,3 +229,37 @@ def test_a_stored_run_is_judged_again_from_its_measures(tmp_path, capsys):
     assert main(["eval-fidelity", "--data", str(root), "--out", str(tmp_path / "x"), "--first-seed", "-2"]) == 2
     assert "--first-seed at least 0" in capsys.readouterr().err
     assert main(["eval-fidelity", "--out", str(tmp_path / "x")]) == 2           # nothing to judge, no data
+
+
+def test_runs_with_other_seeds_pool_into_one_table_judged_on_every_seed(tmp_path, capsys):
+    from salad.cli import main
+    from salad.eval.fidelity import pool
+    low, high = _stored_bye_run("right"), _stored_bye_run("right")
+    for s in low["rows"][0]["samples"]:             # hands raised 0.2 m under the real median: a fail alone
+        s["raw"] = {**s["raw"], "hand_height_m": 0.6}
+    for i, s in enumerate(high["rows"][0]["samples"]):
+        s["seed"] = 3 + i
+    high["settings"]["first_seed"] = 3
+    assert not rejudge(low)["rows"][0]["raw"]["checks"]["hand_height_m"]["pass"]
+    before = json.dumps(low, sort_keys=True)
+    pooled = rejudge(pool([low, high]))
+    assert json.dumps(low, sort_keys=True) == before, "pooling leaves the runs as they were"
+    assert len(pooled["rows"][0]["samples"]) == 6 and pooled["settings"]["seeds"] == 6
+    check = pooled["rows"][0]["raw"]["checks"]["hand_height_m"]
+    assert check["generated"] == pytest.approx(0.7) and check["pass"], "the median of all six motions"
+    assert "6 seeds" in report_markdown(pooled)
+    with pytest.raises(ValueError, match="share seeds"):
+        pool([low, low])
+    other = json.loads(json.dumps(high))
+    other["settings"]["steps"] = 25
+    with pytest.raises(ValueError, match="these differ: steps"):
+        pool([low, other])
+    for name, run in (("low", low), ("high", high)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps(run))
+    assert main(["eval-fidelity", "--rejudge", str(tmp_path / "low"), str(tmp_path / "high")]) == 2
+    assert "needs --out" in capsys.readouterr().err
+    assert main(["eval-fidelity", "--rejudge", str(tmp_path / "low"), str(tmp_path / "high"),
+                 "--out", str(tmp_path / "both")]) == 0
+    res = json.loads((tmp_path / "both" / "results.json").read_text())
+    assert res["summary"]["raw"]["passed"] == 1 and res["settings"]["pooled_seeds"] == [0, 1, 2, 3, 4, 5]

@@ -14,7 +14,7 @@ from ..eval.classifiers import load_classifier
 from ..eval.control_bench import OMNICONTROL_JOINTS, evaluate_control, parse_density, parse_joints, write_control_report
 from ..eval.edit_bench import run_edit_benchmark
 from ..eval.edit_suite import DEFAULT_SCALES, MODES, SUITES, default_suite
-from ..eval.fidelity import evaluate_fidelity, fidelity_classes, rejudge, report_markdown
+from ..eval.fidelity import evaluate_fidelity, fidelity_classes, pool, rejudge, report_markdown
 from ..eval.length_dist import DEFAULT_BIN_FRAMES, MIN_FRAMES, evaluate_lengths, write_length_report
 from ..eval.paraphrases import PROMPT_SETS
 from ..eval.real_edit_bench import SDEDIT_STRENGTHS, run_real_edit_bench
@@ -210,10 +210,12 @@ def add_eval_fidelity(sub) -> None:
     p = sub.add_parser("eval-fidelity", help="per-class fidelity of held-out paraphrases against real clips")
     p.add_argument("--data", help="labelled HumanML3D-layout dataset (labels.json); required unless --rejudge")
     p.add_argument("--out", help="directory for results.json and report.md; required unless --rejudge")
-    p.add_argument("--rejudge", metavar="DIR", default=None,
+    p.add_argument("--rejudge", metavar="DIR", nargs="+", default=None,
                    help="judge a stored run (DIR/results.json) again under the current rules from the measures it "
                         "keeps, generating nothing; writes to --out, or back into DIR. With --data, its real "
-                        "reference clips are also chosen and measured again (the current reference rule)")
+                        "reference clips are also chosen and measured again (the current reference rule). Several "
+                        "DIRs (runs of the same settings with other seeds, e.g. --first-seed 0 and 3) are pooled "
+                        "into one table judged on all their seeds; --out is then required")
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--classes", default=None, help="comma list of classes (default: all), e.g. walk,kick")
     p.add_argument("--seeds", type=int, default=3)
@@ -241,7 +243,9 @@ def cmd_eval_fidelity(a) -> int:
     from ..pipeline import load_pipeline
 
     if a.rejudge:
-        return _rejudge_fidelity(Path(a.rejudge), Path(a.out or a.rejudge), a.data)
+        if len(a.rejudge) > 1 and not a.out:
+            raise ValueError("pooling several runs (--rejudge DIR DIR...) needs --out")
+        return _rejudge_fidelity([Path(d) for d in a.rejudge], Path(a.out or a.rejudge[0]), a.data)
     if not a.data or not a.out:
         raise ValueError("eval-fidelity needs --data and --out (or --rejudge DIR)")
     device = device_of(a)
@@ -265,14 +269,17 @@ def cmd_eval_fidelity(a) -> int:
     return 0
 
 
-def _rejudge_fidelity(src: Path, out: Path, data: str | None) -> int:
+def _rejudge_fidelity(sources: list[Path], out: Path, data: str | None) -> int:
     if data is not None:
         read_labels(data)                         # a dataset that cannot be read says so before anything else
-    try:
-        stored = json.loads((src / "results.json").read_text())
-        results = rejudge(stored, data)
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{src / 'results.json'} is not a readable eval-fidelity result: {e}") from None
+    stored = []
+    for src in sources:
+        try:
+            stored.append(json.loads((src / "results.json").read_text()))
+            rejudge(stored[-1])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"{src / 'results.json'} is not a readable eval-fidelity result: {e}") from None
+    results = rejudge(pool(stored) if len(stored) > 1 else stored[0], data)
     _write_fidelity(results, out)
     return 0
 

@@ -317,6 +317,53 @@ def rejudge(results: dict, data_root: str | Path | None = None) -> dict:
     return {**results, "rows": rows, "rules": RULES, "summary": summ}
 
 
+# settings that may differ between runs pooled into one table: the seeds, and what the runs recorded of themselves
+POOLED_MAY_DIFFER = ("seeds", "first_seed", "seconds", "pooled_seeds")
+
+
+def pool(runs: list[dict]) -> dict:
+    """Stored runs of the same classes, prompts and settings with other seeds, as one run whose rows hold
+    every run's samples (judged again with rejudge: medians over all their seeds). Each run's seeds must
+    be its own, and the classifier's reads add up. `runs` are left as they were."""
+    if not runs:
+        raise ValueError("no runs to pool")
+    first = runs[0]
+    same = {k: v for k, v in first["settings"].items() if k not in POOLED_MAY_DIFFER}
+    seeds: set[int] = set()
+    for run in runs:
+        theirs = {k: v for k, v in run["settings"].items() if k not in POOLED_MAY_DIFFER}
+        if theirs != same:
+            differ = sorted(k for k in set(theirs) | set(same) if theirs.get(k) != same.get(k))
+            raise ValueError(f"only runs of the same settings pool; these differ: {', '.join(differ)}")
+        if [r["class"] for r in run["rows"]] != [r["class"] for r in first["rows"]]:
+            raise ValueError("only runs of the same classes pool")
+        mine = {s["seed"] for r in run["rows"] for s in r["samples"]}
+        if mine & seeds:
+            raise ValueError(f"runs share seeds {sorted(mine & seeds)}: each motion would count twice")
+        seeds |= mine
+    pooled = copy.deepcopy(first)
+    for run in runs[1:]:
+        for row, more in zip(pooled["rows"], run["rows"]):
+            row["samples"] += copy.deepcopy(more["samples"])
+            if "classified" in row and "classified" in more:
+                for k in ("content_correct", "total", "style_correct"):
+                    if k in row["classified"]:
+                        row["classified"][k] += more["classified"][k]
+                row["classified"]["predicted"] = row["classified"]["predicted"] + more["classified"]["predicted"]
+    reads = [r["summary"].get("classified") for r in runs]
+    if all(reads):
+        correct, total = sum(c["content_correct"] for c in reads), sum(c["total"] for c in reads)
+        pooled["summary"]["classified"] = {**reads[0], "content_correct": correct, "total": total,
+                                           "share": round(correct / total, 4) if total else None}
+    else:
+        pooled["summary"].pop("classified", None)
+    s = pooled["settings"]
+    s["seeds"], s["first_seed"] = len(seeds), min(seeds)
+    s["pooled_seeds"] = sorted(seeds)
+    s["seconds"] = round(sum(r["settings"].get("seconds", 0.0) for r in runs), 1)
+    return pooled
+
+
 def classified(classifier, cls: FidelityClass, features: list) -> dict:
     """How many of a class's generated motions the classifier calls the prompt's action (and style)."""
     pred = classifier.predict(features)
@@ -362,6 +409,8 @@ def describe_length(settings: dict) -> str:
 
 def describe_seeds(s: dict) -> str:
     first = s.get("first_seed", 0)
+    if s.get("pooled_seeds") and s["pooled_seeds"] != list(range(first, first + s["seeds"])):
+        return f"{s['seeds']} seeds ({', '.join(map(str, s['pooled_seeds']))})"
     return f"{s['seeds']} seeds" if not first else f"{s['seeds']} seeds ({first}-{first + s['seeds'] - 1})"
 
 
