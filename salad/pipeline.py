@@ -91,8 +91,8 @@ STILL_FEET_MPS = 0.1
 # 0.021 (real 0.025) and the mean path error from 13 to 10 mm; at weight 1 the targets held the legs
 # (skating 0.042), without them one path strayed over 20 cm.
 CONTROL_FEET_TARGETS = 0.1
-# dpm-sde at 25 steps passes the fidelity classes DDIM-50 passes, within what 3 seeds more move them (README,
-# *Faster motions from text*); at 20 it lost the punch's step.
+# dpm-sde at 25 steps: the fidelity table of ancestral DDIM-50 (six seeds pooled, sets a / b: 26 / 25 classes raw
+# either way) in half the forwards; at 20 steps it lost set a's punch (session 51, README, Limitations).
 DEFAULT_STEPS = {"ddim": 50, "dpm": 50, "dpm-sde": 25, "consistency": 4}
 # Recorded source runs kept for edits to replay (salad.editing.replay): the teacher's record of a 9.8 s
 # canvas at 50 steps is about 90 MB in float32. Two cover a generated motion and the edit source before it.

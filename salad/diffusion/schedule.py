@@ -3,8 +3,8 @@
 The model predicts v (Salimans & Ho): v = sqrt(a) * eps - sqrt(1 - a) * x0, with a the
 cumulative alpha at t. Samplers are diffusers' DDIM (the paper's), DPM-Solver++ (a multistep
 solver that needs far fewer steps), its SDE form "dpm-sde" (SDE-DPM-Solver++(2M): fresh noise at
-every step like ancestral DDIM, whose first-order form it is, at about half the steps for the same
-motions); "consistency" is diffusers' LCM schedule for a distilled student
+every step like ancestral DDIM, whose first-order form it is; at 25 steps the fidelity table of
+ancestral DDIM-50); "consistency" is diffusers' LCM schedule for a distilled student
 (salad/diffusion/consistency.py).
 """
 from __future__ import annotations
