@@ -153,7 +153,7 @@ class Studio:
         if sampler == "auto":
             # the student starts only the panels its checkpoint says it was measured fit for (the embedded
             # one: guided control, not motions from text; README, *The shipped pair*); otherwise text takes the
-            # teacher in dpm-sde's 25 steps (DDIM-50's motions within seed noise, in half the time) and guided
+            # teacher in dpm-sde's 25 steps (DDIM-50's fidelity table in half the time) and guided
             # control DDIM, the one teacher sampler it guides
             sampler = "consistency" if pipe.student_preferred("text") else "dpm-sde"
             control = "consistency" if pipe.student_preferred("control") else "ddim"

@@ -3,8 +3,9 @@ on the tiny trained model. Screenshots go to test-artifacts/browser/, and also t
 $SALAD_SCREENSHOTS (e.g. assets/screenshots, relative to the repository) when that is set.
 
 To shoot the screenshots with a real model:
-    SALAD_SCREENSHOTS=assets/screenshots SALAD_BROWSER_MODEL=assets/model SALAD_BROWSER_STEPS=50 \
+    SALAD_SCREENSHOTS=assets/screenshots SALAD_BROWSER_MODEL=assets/model SALAD_BROWSER_STEPS=default \
         pytest tests/test_browser.py
+(default: every tab samples with its own default steps, as a user's first click does).
 """
 import os
 import re
@@ -29,7 +30,8 @@ CHROMIUM = Path("/usr/bin/chromium")
 FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
          "--disable-component-update", "--disable-sync", "--autoplay-policy=no-user-gesture-required"]
 PROMPT = "a person waves their right hand happily"
-STEPS = int(os.environ.get("SALAD_BROWSER_STEPS", "4"))     # sampling steps of the edit and control runs
+# sampling steps of the runs that set them (the tiny model's 4 keep the tests quick); "default": the tabs' own
+STEPS = None if os.environ.get("SALAD_BROWSER_STEPS") == "default" else int(os.environ.get("SALAD_BROWSER_STEPS", "4"))
 
 pytestmark = pytest.mark.browser
 
@@ -206,6 +208,12 @@ def set_slider(page, selector: str, value) -> None:
     box.press("Enter")
 
 
+def set_steps(page, selector: str) -> None:
+    """A tab's steps slider to STEPS (left at the tab's default when STEPS is None)."""
+    if STEPS is not None:
+        set_slider(page, selector, STEPS)
+
+
 def wait_for_new_video(page, selector: str, previous: str | None, width: int) -> str:
     """Wait until the <video> under `selector` shows a new file of the given width, its full
     (antialiased) render rather than the preview shown first; returns its src."""
@@ -230,7 +238,7 @@ def test_every_edit_mode_shows_source_and_edit_side_by_side(studio_url, page):
     page.goto(studio_url, wait_until="load")
     page.get_by_role("tab", name="Edit").click()
     page.locator("#edit-tab").get_by_text("Sampling", exact=True).click()
-    set_slider(page, "#edit-steps", STEPS)
+    set_steps(page, "#edit-steps")
 
     src, video = None, "#edit-video video"
     source_map, edited_map = "#edit-source-heatmap .js-plotly-plot", "#edit-edited-heatmap .js-plotly-plot"
@@ -287,7 +295,7 @@ def test_edit_this_motion_opens_the_edit_tab_on_the_generated_motion(studio_url,
     page.goto(studio_url, wait_until="load")
     page.locator("#prompt textarea").fill(PROMPT)
     page.locator("#generate-tab").get_by_text("Sampling", exact=True).click()
-    set_slider(page, "#steps", STEPS)
+    set_steps(page, "#steps")
     page.locator("#seed input").fill("5")
     page.locator("#generate-button").click()
     page.wait_for_function("() => document.querySelector('#summary').innerText.includes('happily')")
@@ -313,7 +321,7 @@ def test_a_path_control_shows_the_guided_motion_and_its_error(studio_url, page):
     page.wait_for_function(f"() => {{ const g = document.querySelector({preview!r});"
                            " return g && g.data && g.data.some(t => t.name === 'target'); }")
     page.locator("#control-tab").get_by_text("Sampling", exact=True).click()
-    set_slider(page, "#control-steps", STEPS)
+    set_steps(page, "#control-steps")
     page.locator("#control-button").click()
     wait_for_new_video(page, "#control-video video", None, 448)
     top = "#control-top-view .js-plotly-plot"
@@ -338,7 +346,7 @@ def test_a_real_motion_upload_is_mirrored_next_to_its_input(studio_url, page, ba
     page.locator("#real-source textarea").fill("a person waves their left hand")
     page.locator("#real-mode label", has_text="mirror").click()
     page.locator("#real-tab").get_by_text("Inversion and sampling", exact=True).click()
-    set_slider(page, "#real-steps", STEPS)
+    set_steps(page, "#real-steps")
     page.locator("#real-button").click()
 
     # input, reconstruction and edit in three panels; the video loads and plays
@@ -397,7 +405,7 @@ def test_at_800_px_the_views_are_wide_framed_and_nothing_overlaps(studio_url, pa
     # the Edit tab: its caption whole, the remaining downloads' progress off the file list
     page.get_by_role("tab", name="Edit").click()
     page.locator("#edit-tab").get_by_text("Sampling", exact=True).click()
-    set_slider(page, "#edit-steps", STEPS)
+    set_steps(page, "#edit-steps")
     # where the rendering progress shows while the edit's remaining downloads are made (a brief
     # "processing" timer may flash on every output as a result arrives; the bar is what covered the files)
     page.evaluate("""() => { window.__progressIn = new Set();

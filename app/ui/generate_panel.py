@@ -28,7 +28,7 @@ def foot_lock_checkbox(elem_id: str) -> gr.Checkbox:
     return gr.Checkbox(value=True, label=FOOT_LOCK_LABEL, info=FOOT_LOCK_INFO, elem_id=elem_id)
 
 
-# The sampler choices: the teacher's SDE-DPM-Solver++ (half DDIM's steps, the same motions within seed noise) as the
+# The sampler choices: the teacher's SDE-DPM-Solver++ (half DDIM's steps, DDIM-50's fidelity table) as the
 # standard, the 50-step DDIM teacher as the quality choice, and with a distilled student the fast student.
 FAST_LABEL = f"fast: distilled student, {SAMPLER_STEPS['consistency']} steps"
 STANDARD_LABEL = f"standard: SDE-DPM-Solver++, {SAMPLER_STEPS['dpm-sde']} steps"
@@ -40,8 +40,8 @@ SAMPLER_INFO = {
     "consistency": lambda pipe: (f"fast: the consistency-distilled student (CFG {pipe.guidance_range[0]:g} to "
                                  f"{pipe.guidance_range[1]:g}, at most {CONSISTENCY_GRID} steps; 4 is its best), close "
                                  "to the teacher in a fifteenth of the time (README, Results)"),
-    "dpm-sde": lambda pipe: (f"standard: the teacher in {SAMPLER_STEPS['dpm-sde']} steps of SDE-DPM-Solver++, the "
-                             "same motions as DDIM's within seed noise in half the time"),
+    "dpm-sde": lambda pipe: (f"standard: the teacher in {SAMPLER_STEPS['dpm-sde']} steps of SDE-DPM-Solver++, as "
+                             "faithful to the real captures as DDIM-50 in half the time"),
     "ddim": lambda pipe: f"quality: the teacher in {SAMPLER_STEPS['ddim']} DDIM steps, the paper's sampler",
     "dpm": lambda pipe: "DPM-Solver++: deterministic, fewer steps for a close result (30 steps: 16 mm from the "
                         "250-step solution, DDIM-50: 18 mm)",
