@@ -107,8 +107,8 @@ def _video_url(value) -> str:
 def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads: int | None,
         fetch_all: bool = False) -> dict:
     """sampler "auto": the studio's defaults for text and for guided control; steps=None: each sampler's
-    default (salad.pipeline.DEFAULT_STEPS), else these steps for both. fetch_all: download every file a response returns, not just its
-    video."""
+    default (salad.pipeline.DEFAULT_STEPS), else these steps for both. fetch_all: download every file a
+    response returns, not just its video."""
     from gradio_client import Client
 
     from .server import create_app, launch

@@ -350,6 +350,8 @@ def pool(runs: list[dict]) -> dict:
                     if k in row["classified"]:
                         row["classified"][k] += more["classified"][k]
                 row["classified"]["predicted"] = row["classified"]["predicted"] + more["classified"]["predicted"]
+            else:                   # a run judged without the classifier: no count covers every motion
+                row.pop("classified", None)
     reads = [r["summary"].get("classified") for r in runs]
     if all(reads):
         correct, total = sum(c["content_correct"] for c in reads), sum(c["total"] for c in reads)
