@@ -588,14 +588,17 @@ class Pipeline:
         """generate's sampling, on checked arguments; row: only that row of the batch's noise; watch: denoise's."""
         canvas = frames or self.canvas_frames
         noise = self.noise(batch, canvas, seed)
+        alone = batch == 1          # one motion's run, also when it is sampled again at its band's edge (row 0)
         if row is not None:
             noise, batch = noise[row:row + 1], 1
         text = self.sampler_text([prompt] * batch, sampler)
         rows = self.conditional_rows(batch, sampler)
         store = AttentionStore(text, rows=rows, frames=canvas) if return_attention else None
-        # a motion whose maps are asked for is likely edited next: its run is kept for the edit to replay
+        # a motion whose maps are asked for is likely edited next: its run is kept for the edit to replay (one sampled
+        # again at its band's edge too: an edit of it goes to that edge, with that length in its source key); a row
+        # of a batch is not, as its fresh noise per step is not the batch's
         recorder = (SourceRecorder(rows, observers=[store])
-                    if store is not None and batch == 1 and self.records(sampler) else None)
+                    if store is not None and alone and self.records(sampler) else None)
         on_step = _stepped(progress, recorder)
         with self.network(sampler).controlled(recorder or store):
             z = self.denoise(text, noise, sampler, steps, cfg, auto=frames is None, seed=seed, on_step=on_step,
@@ -605,7 +608,7 @@ class Pipeline:
         if store is not None:
             for b, m in enumerate(motions):
                 m.attention = store.maps(b, frames=m.frames)
-        if recorder is not None and row is None:
+        if recorder is not None:
             recorder.run.attention = store.maps(0)
             self.source_runs.put(self.source_key(prompt, frames, seed, steps, cfg, sampler), recorder.run)
         return motions
