@@ -112,10 +112,9 @@ def sample(model: ModelFn, noise: torch.Tensor, schedule: NoiseSchedule, sampler
             out = cfg_combine(out.float(), cfg_scale if guided else 1.0, cfg_rescale)
         if watch is not None:
             watch(i + 1, schedule.to_x0_eps(x, out, tt[:x.shape[0]])[0])
-        if eta > 0:
-            x = sched.step(out, t, x, eta=eta, variance_noise=fresh_noise(x, generator, shared_noise)).prev_sample
-        elif sampler in STOCHASTIC_SAMPLERS:
-            x = sched.step(out, t, x, variance_noise=fresh_noise(x, generator, shared_noise)).prev_sample
+        if eta > 0 or sampler in STOCHASTIC_SAMPLERS:
+            ddim = {"eta": eta} if eta > 0 else {}        # only DDIM takes eta (checked above)
+            x = sched.step(out, t, x, variance_noise=fresh_noise(x, generator, shared_noise), **ddim).prev_sample
         else:
             x = sched.step(out, t, x).prev_sample
         if blend is not None:
