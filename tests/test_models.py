@@ -8,7 +8,7 @@ import torch
 from salad.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from salad.diffusion.sampling import cfg_combine, sample
 from salad.diffusion.schedule import NoiseSchedule
-from salad.models.attention import AttentionCall
+from salad.models.attention import FUSED_MIN_KEYS, AttentionCall
 from salad.models.denoiser import Denoiser, DenoiserConfig
 from salad.models.io import load_denoiser, load_vae, save_denoiser, save_vae
 from salad.models.vae import MotionVAE, VAEConfig
@@ -49,13 +49,22 @@ def test_paper_configs_shapes_and_parameter_counts():
     assert act.shape == (2, 64)
 
 
-def test_controller_path_matches_fused_attention_and_sees_every_map():
+def test_controller_path_matches_fused_attention_and_sees_every_map(monkeypatch):
     torch.manual_seed(0)
     den = tiny_denoiser().eval()
-    z, t = torch.randn(2, 6, 7, 32), torch.tensor([3, 700])
-    text, mask = torch.randn(2, 4, 16), torch.tensor([[1, 1, 1, 0], [1, 1, 1, 1]], dtype=torch.bool)
-    frame_mask = torch.tensor([[1] * 6, [1] * 4 + [0] * 2], dtype=torch.bool)
+    # more keys than FUSED_MIN_KEYS over frames and words, fewer over the 7 parts: both kernels run
+    frames, words = FUSED_MIN_KEYS + 4, FUSED_MIN_KEYS + 2
+    z, t = torch.randn(2, frames, 7, 32), torch.tensor([3, 700])
+    text, mask = torch.randn(2, words, 16), torch.ones(2, words, dtype=torch.bool)
+    mask[0, -3:] = False
+    frame_mask = torch.ones(2, frames, dtype=torch.bool)
+    frame_mask[1, -5:] = False
+    fused_calls = []
+    sdpa = torch.nn.functional.scaled_dot_product_attention
+    monkeypatch.setattr(torch.nn.functional, "scaled_dot_product_attention",
+                        lambda q, k, *a, **kw: fused_calls.append(k.shape[-2]) or sdpa(q, k, *a, **kw))
     fused = den(z, t, text, mask, frame_mask)
+    assert sorted(set(fused_calls)) == sorted({frames, words}) and len(fused_calls) == 6   # temporal, cross
     seen = []
 
     def observe(call: AttentionCall):
@@ -68,9 +77,9 @@ def test_controller_path_matches_fused_attention_and_sees_every_map():
     den.set_controller(None)
     torch.testing.assert_close(controlled, fused, atol=1e-5, rtol=1e-5)
     kinds = {(k, l): s for k, l, s in seen}
-    assert kinds[("temporal", 0)] == (2 * 7, 4, 6, 6)
-    assert kinds[("skeletal", 2)] == (2 * 6, 4, 7, 7)
-    assert kinds[("cross", 1)] == (2, 4, 6 * 7, 4)
+    assert kinds[("temporal", 0)] == (2 * 7, 4, frames, frames)
+    assert kinds[("skeletal", 2)] == (2 * frames, 4, 7, 7)
+    assert kinds[("cross", 1)] == (2, 4, frames * 7, words)
     assert len(seen) == 9
 
 
