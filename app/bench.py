@@ -43,6 +43,8 @@ import httpx
 
 from salad.files import atomic_write_text
 
+from .settings import PRECISIONS
+
 GENERATE_TARGET_S, EDIT_TARGET_S, CONTROL_TARGET_S, WORD_TARGET_S = 1.5, 2.5, 4.0, 0.5
 PROMPTS = ("a person waves their right hand", "a person walks forward and turns left",
            "an exhausted person walks forward")
@@ -104,7 +106,7 @@ def _video_url(value) -> str:
     return data["url"]
 
 
-def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads: int | None,
+def run(model: str | None, steps: int | None, sampler: str, precision: str, threads: int | None,
         fetch_all: bool = False) -> dict:
     """sampler "auto": the studio's defaults for text and for guided control; steps=None: each sampler's
     default (salad.pipeline.DEFAULT_STEPS), else these steps for both. fetch_all: download every file a
@@ -116,11 +118,12 @@ def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads:
 
     started = time.time()
     with tempfile.TemporaryDirectory() as tmp:
-        settings = Settings(model=model, port=_free_port(), tmp_dir=Path(tmp), bf16=bf16, threads=threads)
+        settings = Settings(model=model, port=_free_port(), tmp_dir=Path(tmp), precision=precision, threads=threads)
         studio_app = create_app(settings)
         if studio_app.studio is None:
             raise SystemExit(f"the studio could not load a model: {studio_app.error}")
         studio, asked = studio_app.studio, sampler
+        computed = studio.pipe.precision
         if sampler == "auto":
             sampler, guided = studio.default_sampler, studio.control_sampler
         else:
@@ -194,7 +197,8 @@ def run(model: str | None, steps: int | None, sampler: str, bf16: bool, threads:
             studio_app.close()
             remove_download_leftovers(started)
     return {"settings": {"model": model or "embedded", "steps": steps, "sampler": sampler, "asked": asked,
-                         "control_sampler": guided, "control_steps": guided_steps, "bf16": bf16,
+                         "control_sampler": guided, "control_steps": guided_steps, "precision": precision,
+                         "computed": computed,
                          "threads": threads, "fetch_all": fetch_all}} | report | {
             "targets_s": {"generate": GENERATE_TARGET_S, "edit": EDIT_TARGET_S, "control": CONTROL_TARGET_S,
                           "word_click": WORD_TARGET_S}}
@@ -222,7 +226,7 @@ def format_table(report: dict) -> str:
     fetched = "every returned file fetched" if s.get("fetch_all") else "videos fetched"
     control = f", control {s['control_sampler']}-{s['control_steps']}" if "control_sampler" in s else ""
     lines = [f"studio latency, {s['model']} model, {s['sampler']}-{s['steps']}{control}, "
-             f"{'bf16' if s['bf16'] else 'fp32'}, threads {s['threads'] or 'default'}, {fetched}", "",
+             f"{s['computed']} ({s['precision']}), threads {s['threads'] or 'default'}, {fetched}", "",
              f"{'request':36s} {'median s':>9s} {'max s':>7s} {'target s':>9s}  met"]
     for name, key, target in ROWS:
         times = report[key]
@@ -242,13 +246,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sampler", choices=("auto", "dpm-sde", "ddim", "dpm", "consistency"), default="auto",
                    help="auto: the studio's defaults (text and guided control apart); consistency: the model's "
                         "distilled student")
-    p.add_argument("--bf16", action="store_true", help="bf16 autocast (the studio's default is fp32)")
+    p.add_argument("--precision", choices=PRECISIONS, default="auto",
+                   help="as the studio's --precision (default auto: bf16 autocast from 2 rows a forward where the "
+                        "CPU has native bf16)")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--fetch-all", action="store_true",
                    help="download every file a response returns (gradio_client's default), not just its video")
     p.add_argument("--out", type=Path, default=None, help="write the measurements as JSON here")
     a = p.parse_args(argv)
-    report = run(a.model, a.steps, a.sampler, a.bf16, a.threads, a.fetch_all)
+    report = run(a.model, a.steps, a.sampler, a.precision, a.threads, a.fetch_all)
     print(format_table(report))
     if a.out is not None:
         atomic_write_text(a.out, json.dumps(report, indent=2))

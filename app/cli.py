@@ -7,7 +7,7 @@ import signal
 import sys
 from pathlib import Path
 
-from .settings import DEFAULT_SAMPLER, STUDIO_SAMPLERS, Settings, default_clips, default_host, default_port
+from .settings import DEFAULT_SAMPLER, PRECISIONS, STUDIO_SAMPLERS, Settings, default_clips, default_host, default_port
 
 
 def parse_args(argv: list[str] | None = None) -> Settings:
@@ -19,9 +19,9 @@ def parse_args(argv: list[str] | None = None) -> Settings:
     p.add_argument("--port", type=int, default=default_port(), help="port (default 7860, or $GRADIO_SERVER_PORT)")
     p.add_argument("--concurrency", type=int, default=2, help="jobs served at once (default 2; sampling is serialised)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
-    p.add_argument("--bf16", action="store_true",
-                   help="bf16 autocast (off by default: on this CPU it slows single motions by a third and speeds "
-                        "up only batches of 4+ rows; see `salad bench`)")
+    p.add_argument("--precision", choices=PRECISIONS, default="auto",
+                   help="auto (default): bf16 autocast for forwards of 2 rows or more (guided steps, edits) on a "
+                        "CPU with native bf16, fp32 for single rows and elsewhere; fp32 or bf16: every forward")
     p.add_argument("--tmp-dir", type=Path, default=None, help="where the studio's temp folder goes (default: $TMPDIR)")
     p.add_argument("--session-ttl", type=float, default=7200.0,
                    help="seconds after which an idle session and its files are removed (default 7200)")
@@ -41,7 +41,7 @@ def parse_args(argv: list[str] | None = None) -> Settings:
     clips = None if a.no_clips else (a.clips if a.clips is not None else default_clips())
     try:
         return Settings(model=a.model, host=a.host, port=a.port, concurrency=a.concurrency, threads=a.threads,
-                        bf16=a.bf16, tmp_dir=a.tmp_dir, session_ttl_s=a.session_ttl,
+                        precision=a.precision, tmp_dir=a.tmp_dir, session_ttl_s=a.session_ttl,
                         control_examples=a.control_examples, clips=clips, sampler=a.sampler)
     except ValueError as exc:
         p.error(str(exc))

@@ -46,7 +46,9 @@ def _load(settings: Settings):
 
     try:
         # the CPU, as before the pipeline took a device: the studio has not been tried on a GPU
-        return load_pipeline(settings.model, bf16=settings.bf16, threads=settings.threads, device="cpu"), None
+        bf16, min_rows = settings.bf16_rows
+        return load_pipeline(settings.model, bf16=bf16, bf16_min_rows=min_rows, threads=settings.threads,
+                             device="cpu"), None
     except Exception as exc:     # any failure to load becomes the error page, not a crash
         log.error("no model: %s", exc)
         return None, f"{type(exc).__name__}: {exc}"

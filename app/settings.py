@@ -42,6 +42,16 @@ DEFAULT_CLIPS = Path(__file__).resolve().parents[1] / "data" / "bandai-hml"
 CLIP_LAYOUT = ("new_joint_vecs", "texts", "test.txt")   # what a dataset build must hold to offer clips
 
 
+# How the model thread computes: "auto" runs bf16 autocast for forwards of two rows or more (a guided
+# step's paired rows, an edit's branches) on a CPU with native bf16 and fp32 otherwise; "fp32" and "bf16"
+# run every forward so. Measured on an AVX-512 BF16 EPYC whose bf16 matmuls ran 2.3x its fp32 ones
+# (session 53, in the studio, medians of 9 generations and 3 fresh edits per setting, interleaved):
+# sampling a generation 1.18 s fp32, 1.21 bf16, 1.10 auto; an edit's 1.91, 1.69, 1.56. One row at a time
+# (the student, unguided steps) bf16 was 10% slower. CPUs without native bf16 run fp32 whatever is asked.
+PRECISIONS = ("auto", "fp32", "bf16")
+AUTO_BF16_MIN_ROWS = 2
+
+
 @dataclass(frozen=True)
 class Settings:
     """How the studio is started. `model=None` means $SALAD_MODEL or the embedded model."""
@@ -55,7 +65,7 @@ class Settings:
     prune_every_s: float = 600
     tmp_dir: Path | None = None     # parent of the studio's private temp root
     threads: int | None = None      # torch threads of the model thread (app.model_thread); None: torch's default
-    bf16: bool = False             # measured: fp32 is faster for the studio's one-motion requests
+    precision: str = "auto"         # PRECISIONS
     control_examples: Path | None = None   # a folder of MoLA-style control .npy files offered in the Control tab
     clips: Path | None = None       # a dataset build (HumanML3D layout) whose test clips the Real motion tab offers
     sampler: str = DEFAULT_SAMPLER  # the panels' default sampler (ddim when the model has no student)
@@ -73,6 +83,13 @@ class Settings:
             raise ValueError(f"sampler must be one of {', '.join(STUDIO_SAMPLERS)}, got {self.sampler!r}")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be positive, got {self.threads}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
+
+    @property
+    def bf16_rows(self) -> tuple[bool, int]:
+        """(bf16, bf16_min_rows) for load_pipeline."""
+        return (self.precision != "fp32", AUTO_BF16_MIN_ROWS if self.precision == "auto" else 1)
         if self.control_examples is not None and not Path(self.control_examples).is_dir():
             raise ValueError(f"{self.control_examples}: the control examples folder does not exist")
         if self.clips is not None:

@@ -126,7 +126,7 @@ class _LengthLeftBand(Exception):
 class Pipeline:
     def __init__(self, vae: MotionVAE, normalizer: Normalizer, latent_scale: float, denoiser: Denoiser,
                  text_encoder: TextEncoder, schedule: NoiseSchedule, canvas_frames: int, bf16: bool = True,
-                 source: str = "", prompt_check: PromptCheck | None = None, device: str | torch.device = "auto",
+                 bf16_min_rows: int = 1, source: str = "", prompt_check: PromptCheck | None = None, device: str | torch.device = "auto",
                  student: Denoiser | None = None, student_info: dict | None = None):
         self.device = resolve_device(device)
         if self.device.type == "cpu":
@@ -136,6 +136,9 @@ class Pipeline:
         self.text_encoder = text_encoder.to(self.device)
         self.canvas_frames = canvas_frames
         self.bf16 = bf16 and bf16_supported(self.device)
+        if not isinstance(bf16_min_rows, int) or isinstance(bf16_min_rows, bool) or bf16_min_rows < 1:
+            raise ValueError(f"bf16_min_rows must be a positive integer, got {bf16_min_rows!r}")
+        self.bf16_min_rows = bf16_min_rows
         self.source = source
         self.prompt_check = prompt_check
         # the consistency-distilled student (sampler="consistency"), when the model ships one;
@@ -215,7 +218,14 @@ class Pipeline:
         guidance = {"cfg_rescale": self.cfg_rescale, "cfg_cutoff": self.cfg_cutoff}
         teacher = {"ddim": {"ddim_eta": self.ddim_eta, **guidance}, "dpm": guidance, "dpm-sde": guidance}.get(sampler, {})
         return {**teacher, "projections": self.projections, "foot_refine": self.foot_refine,
-                "precision": "bf16 autocast" if self.bf16 else "fp32"}
+                "precision": self.precision}
+
+    @property
+    def precision(self) -> str:
+        """How the networks compute, in words (reports record it)."""
+        if not self.bf16:
+            return "fp32"
+        return "bf16 autocast" if self.bf16_min_rows <= 1 else f"bf16 autocast from {self.bf16_min_rows} rows a forward"
 
     # ------------------------------------------------------------ validation
     @property
@@ -349,8 +359,11 @@ class Pipeline:
         return self.student is not None and use in self.student_info.get("default_for", ())
 
     # ------------------------------------------------------------ building blocks
-    def autocast(self):
-        return torch.autocast(self.device.type, dtype=torch.bfloat16) if self.bf16 else nullcontext()
+    def autocast(self, rows: int | None = None):
+        """bf16 autocast where the pipeline runs bf16 and a forward of `rows` rows (None: any) reaches
+        bf16_min_rows; else nothing."""
+        on = self.bf16 and (rows is None or rows >= self.bf16_min_rows)
+        return torch.autocast(self.device.type, dtype=torch.bfloat16) if on else nullcontext()
 
     def encode_text(self, prompts: list[str]):
         """Token features for `prompts`, padded together (cached per prompt by the encoder)."""
@@ -368,7 +381,7 @@ class Pipeline:
         rows_mask = None if frame_mask is None else torch.cat((frame_mask, frame_mask))
 
         def run(x: torch.Tensor, t: torch.Tensor, rows: slice, mask: torch.Tensor | None) -> torch.Tensor:
-            with self.autocast():
+            with self.autocast(x.shape[0]):
                 flags = torch.full((x.shape[0],), auto, device=x.device)
                 return self._network_call("denoiser")(
                     x, t, text.tokens[rows], text.mask[rows], mask,
@@ -411,7 +424,7 @@ class Pipeline:
     def student_fn(self, text, auto: bool, cfg: float, frame_mask: torch.Tensor | None = None):
         """The student as the consistency loop sees it: one row per motion, the guidance scale as input."""
         def fn(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-            with self.autocast():
+            with self.autocast(x.shape[0]):
                 flags = torch.full((x.shape[0],), auto, device=x.device)
                 w = torch.full((x.shape[0],), float(cfg), device=x.device)
                 return self._network_call("student")(x, t, text.tokens, text.mask, frame_mask,
@@ -422,7 +435,7 @@ class Pipeline:
         """What decides a source branch's sampling (frames None: automatic length), so that a recorded
         run is replayed only where sampling again would compute the same."""
         return (prompt, frames, int(seed), steps, cfg, sampler, self.ddim_eta, self.cfg_rescale, self.cfg_cutoff,
-                self.bf16)
+                self.precision)
 
     @staticmethod
     def records(sampler: str) -> bool:
@@ -884,10 +897,11 @@ def end_of_motion(activation: np.ndarray, threshold: float = ACTIVATION_THRESHOL
 
 
 def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text_encoder: str | dict | None = None,
-                  threads: int | None = None, device: str | torch.device = "auto") -> Pipeline:
+                  threads: int | None = None, device: str | torch.device = "auto", bf16_min_rows: int = 1) -> Pipeline:
     """Load a model directory holding `vae/` and `denoiser/` checkpoints. path=None means the
     embedded model in assets/model (or $SALAD_MODEL). device: "auto" (a CUDA GPU when torch sees
-    one, else the CPU), "cpu", "cuda" or "cuda:N"; the denoiser, the VAE and the text encoder run there."""
+    one, else the CPU), "cpu", "cuda" or "cuda:N"; the denoiser, the VAE and the text encoder run there.
+    bf16: autocast where the device has native bf16, for forwards of at least bf16_min_rows rows."""
     device = resolve_device(device)     # a GPU that is not there fails before seconds of loading
     if threads:
         torch.set_num_threads(threads)
@@ -910,7 +924,7 @@ def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text
     schedule = NoiseSchedule(from_dict(DiffusionConfig, cfg["diffusion"]))
     student, info = load_student(root, cfg, vae_latent_checksums(root / "vae"))
     return Pipeline(vae, norm, scale, denoiser, encoder, schedule, int(cfg["canvas_frames"]), bf16=bf16,
-                    source=str(root), prompt_check=PromptCheck.load(root, encoder), device=device,
+                    bf16_min_rows=bf16_min_rows, source=str(root), prompt_check=PromptCheck.load(root, encoder), device=device,
                     student=student, student_info=info)
 
 

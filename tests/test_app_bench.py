@@ -5,7 +5,7 @@ from app.bench import format_table, run
 def test_studio_latency_bench_times_every_request(tiny_model):
     from app.bench import ROWS
 
-    report = run(str(tiny_model), steps=2, sampler="auto", bf16=False, threads=1)
+    report = run(str(tiny_model), steps=2, sampler="auto", precision="auto", threads=1)
     assert report["settings"]["fetch_all"] is False, "the page fetches the videos only"
     # the studio's defaults: the teacher's dpm-sde for text, DDIM for guided control (the model has no student)
     assert [report["settings"][k] for k in ("sampler", "control_sampler", "steps", "control_steps")] == [
@@ -20,6 +20,9 @@ def test_studio_latency_bench_times_every_request(tiny_model):
                  "edit this motion → preview", "control (path) → preview video", "word click → heatmap"):
         assert text in table, text
     assert "dpm-sde-2, control ddim-2" in table.splitlines()[0]
+    # the studio's default precision, as this CPU computes it
+    assert report["settings"]["computed"] in ("fp32", "bf16 autocast from 2 rows a forward")
+    assert f"{report['settings']['computed']} (auto)" in table.splitlines()[0]
     full_row = next(line for line in table.splitlines() if line.startswith("generate → full video"))
     assert full_row.split()[-1] == "-", "the full-video rows have no target"
 
@@ -58,7 +61,7 @@ def test_steps_default_to_the_samplers_and_a_missing_student_is_refused(tiny_mod
     assert seen[-1][1:3] == (None, "consistency"), "steps left to the pipeline: the sampler's default"
     monkeypatch.undo()
     with pytest.raises(SystemExit, match="cannot benchmark the consistency sampler: .*has no consistency student"):
-        run(str(tiny_model), steps=None, sampler="consistency", bf16=False, threads=1)
+        run(str(tiny_model), steps=None, sampler="consistency", precision="fp32", threads=1)
 
 
 def test_a_video_url_is_read_from_either_shape_of_a_video_output():

@@ -232,6 +232,19 @@ def test_the_sampler_setting(tmp_path):
         parse_args(["--sampler", "euler"])
 
 
+def test_the_precision_setting():
+    from app.cli import parse_args
+
+    assert Settings().precision == "auto" and parse_args([]).precision == "auto"
+    assert Settings().bf16_rows == (True, 2)            # bf16 from two rows a forward, where the CPU has it
+    assert Settings(precision="fp32").bf16_rows[0] is False and Settings(precision="bf16").bf16_rows == (True, 1)
+    assert parse_args(["--precision", "fp32"]).precision == "fp32"
+    with pytest.raises(ValueError, match="precision must be one of auto, fp32, bf16"):
+        Settings(precision="half")
+    with pytest.raises(SystemExit):
+        parse_args(["--precision", "half"])
+
+
 def test_validation_carries_the_sampler(student_pipe, walk_bvh, tmp_path):
     req, _ = parse_control(student_pipe, "a person walks", "path", "circle", 1.2, 1.0, None, "", "", 1.0, 0, 3, CFG,
                            True, "consistency")

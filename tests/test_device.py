@@ -127,6 +127,32 @@ def test_bf16_follows_the_pipeline_device(pipe, monkeypatch):
     assert isinstance(ctx, torch.autocast) and ctx.device == p.device.type and ctx.fast_dtype == torch.bfloat16
 
 
+def test_bf16_from_a_number_of_rows(pipe, monkeypatch):
+    """bf16_min_rows = 2 (the studio's auto precision): a guided step's paired rows run in bf16, a single
+    row (the conditional rows alone, below the guidance cutoff) in fp32; the reports and the replay key say so."""
+    monkeypatch.setattr("salad.pipeline.bf16_supported", lambda d: True)
+    parts = (pipe.vae, pipe.normalizer, pipe.latent_scale, pipe.denoiser, pipe.text_encoder, pipe.schedule,
+             pipe.canvas_frames)
+    p = Pipeline(*parts, bf16=True, bf16_min_rows=2, device="cpu")
+    seen, net = [], p.denoiser
+    monkeypatch.setattr(p, "_network_call", lambda name: lambda x, *a, **kw: (
+        seen.append((x.shape[0], torch.is_autocast_enabled("cpu"))) or net(x, *a, **kw)))
+    fn = p.model_fn(p.sampler_text(["a person walks"], "ddim"), auto=False)
+    x, t = torch.randn(2, 4, 7, net.config.latent_dim), torch.full((2,), 500)
+    assert fn(x, t).dtype == torch.float32
+    fn.conditional(x[1:], t[1:])
+    assert seen == [(2, True), (1, False)]
+    assert p.precision == "bf16 autocast from 2 rows a forward"
+    assert p.sampler_settings("ddim")["precision"] == p.precision
+    every = Pipeline(*parts, bf16=True, device="cpu")
+    assert every.precision == "bf16 autocast"
+    key = ("a person walks", None, 0, 10, 7.5, "ddim")
+    assert p.source_key(*key) != every.source_key(*key), "a run recorded in one precision is not replayed in another"
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="bf16_min_rows"):
+            Pipeline(*parts, bf16=True, bf16_min_rows=bad, device="cpu")
+
+
 @no_gpu
 @pytest.mark.parametrize("argv", [
     ["generate", PROMPT, "-o", "{tmp}/w.npy"],
