@@ -28,7 +28,7 @@ def _timing(result: Result, sampled: str) -> str:
     return f"{sampled} in {t['sample_s']:.1f} s, rendered in {t['render_s']:.1f} s{refined}{waited}."
 
 
-SAMPLER_NAMES = {"ddim": "DDIM", "dpm": "DPM", "dpm-sde": "SDE-DPM-Solver++"}
+SAMPLER_NAMES = {"ddim": "DDIM", "dpm": "DPM-Solver++", "dpm-sde": "SDE-DPM-Solver++"}
 
 
 def sampling_text(sampler: str, steps: int) -> str:
