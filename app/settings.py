@@ -85,11 +85,6 @@ class Settings:
             raise ValueError(f"threads must be positive, got {self.threads}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
-
-    @property
-    def bf16_rows(self) -> tuple[bool, int]:
-        """(bf16, bf16_min_rows) for load_pipeline."""
-        return (self.precision != "fp32", AUTO_BF16_MIN_ROWS if self.precision == "auto" else 1)
         if self.control_examples is not None and not Path(self.control_examples).is_dir():
             raise ValueError(f"{self.control_examples}: the control examples folder does not exist")
         if self.clips is not None:
@@ -97,6 +92,11 @@ class Settings:
             if missing:
                 raise ValueError(f"{self.clips}: not a dataset build (it lacks {', '.join(missing)}); "
                                  "make one with `salad data build`")
+
+    @property
+    def bf16_rows(self) -> tuple[bool, int]:
+        """(bf16, bf16_min_rows) for load_pipeline."""
+        return (self.precision != "fp32", AUTO_BF16_MIN_ROWS if self.precision == "auto" else 1)
 
 
 def default_host() -> str:
