@@ -83,6 +83,23 @@ def test_controller_path_matches_fused_attention_and_sees_every_map(monkeypatch)
     assert len(seen) == 9
 
 
+@pytest.mark.parametrize("keys", [FUSED_MIN_KEYS - 3, FUSED_MIN_KEYS + 3])
+def test_a_row_with_every_key_masked_attends_to_nothing_on_either_path(keys):
+    from salad.models.attention import Attention
+    torch.manual_seed(0)
+    attn = Attention(16, 4, "cross", context_dim=8).eval()
+    x, context = torch.randn(2, 5, 16), torch.randn(2, keys, 8)
+    mask = torch.ones(2, keys, dtype=torch.bool)
+    mask[0] = False
+    plain = attn(x, context, key_mask=mask)
+    attn.controller = lambda call: call.probs          # observed: the explicit product
+    observed = attn(x, context, key_mask=mask)
+    torch.testing.assert_close(plain, observed, atol=1e-5, rtol=1e-5)
+    empty = attn.to_out(torch.zeros(1, 5, 16))         # nothing attended: the output projection's bias
+    torch.testing.assert_close(plain[:1], empty)
+    assert torch.isfinite(plain).all()
+
+
 def test_controller_can_replace_maps():
     torch.manual_seed(0)
     den = tiny_denoiser().eval()

@@ -87,6 +87,8 @@ class Attention(nn.Module):
             if mask is not None:
                 scores = scores.masked_fill(~mask, float("-inf"))
             probs = scores.softmax(dim=-1)
+            if mask is not None:    # a row with every key masked attends to nothing, as in the fused kernel
+                probs = probs.masked_fill(~mask.any(-1, keepdim=True), 0.0)
             if controller is not None:
                 probs = controller(AttentionCall(self.kind, self.layer, probs, *shape))
             probs = dropout(probs, p_drop)
