@@ -126,7 +126,8 @@ class _LengthLeftBand(Exception):
 class Pipeline:
     def __init__(self, vae: MotionVAE, normalizer: Normalizer, latent_scale: float, denoiser: Denoiser,
                  text_encoder: TextEncoder, schedule: NoiseSchedule, canvas_frames: int, bf16: bool = True,
-                 bf16_min_rows: int = 1, source: str = "", prompt_check: PromptCheck | None = None, device: str | torch.device = "auto",
+                 bf16_min_rows: int = 1, source: str = "", prompt_check: PromptCheck | None = None,
+                 device: str | torch.device = "auto",
                  student: Denoiser | None = None, student_info: dict | None = None):
         self.device = resolve_device(device)
         if self.device.type == "cpu":
@@ -924,8 +925,8 @@ def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text
     schedule = NoiseSchedule(from_dict(DiffusionConfig, cfg["diffusion"]))
     student, info = load_student(root, cfg, vae_latent_checksums(root / "vae"))
     return Pipeline(vae, norm, scale, denoiser, encoder, schedule, int(cfg["canvas_frames"]), bf16=bf16,
-                    bf16_min_rows=bf16_min_rows, source=str(root), prompt_check=PromptCheck.load(root, encoder), device=device,
-                    student=student, student_info=info)
+                    bf16_min_rows=bf16_min_rows, source=str(root), prompt_check=PromptCheck.load(root, encoder),
+                    device=device, student=student, student_info=info)
 
 
 def load_student(root: Path, teacher_config: dict, vae_checksums: set[str]) -> tuple[Denoiser | None, dict]:
