@@ -106,7 +106,7 @@ class Denoise:
         n = x.shape[0]
         if len(text) != n:
             raise ValueError(f"{len(text)} text rows for {n} latent rows")
-        ctx = nullcontext() if self.fp32 or not self.pipe.bf16 else self.pipe.autocast()
+        ctx = nullcontext() if self.fp32 else self.pipe.autocast(n)     # the pipeline's own rule (bf16_min_rows)
         with ctx:
             out = self.pipe.denoiser(x, torch.full((n,), int(t), dtype=torch.long, device=x.device), text.tokens,
                                      text.mask, None, pooled_text=text.pooled,
