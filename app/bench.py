@@ -106,8 +106,19 @@ def _video_url(value) -> str:
     return data["url"]
 
 
+def _wait_for_render_workers(count: int) -> None:
+    """The timings are of the studio at work, not of its render workers starting (the server's
+    warm-up thread starts them)."""
+    from salad.render.workers import wait_ready
+
+    try:
+        wait_ready(count)
+    except TimeoutError as exc:
+        raise SystemExit(f"the studio's {exc}") from None
+
+
 def run(model: str | None, steps: int | None, sampler: str, precision: str, threads: int | None,
-        fetch_all: bool = False) -> dict:
+        fetch_all: bool = False, render_workers: int = 1) -> dict:
     """sampler "auto": the studio's defaults for text and for guided control; steps=None: each sampler's
     default (salad.pipeline.DEFAULT_STEPS), else these steps for both. fetch_all: download every file a
     response returns, not just its video."""
@@ -118,7 +129,8 @@ def run(model: str | None, steps: int | None, sampler: str, precision: str, thre
 
     started = time.time()
     with tempfile.TemporaryDirectory() as tmp:
-        settings = Settings(model=model, port=_free_port(), tmp_dir=Path(tmp), precision=precision, threads=threads)
+        settings = Settings(model=model, port=_free_port(), tmp_dir=Path(tmp), precision=precision, threads=threads,
+                            render_workers=render_workers)
         studio_app = create_app(settings)
         if studio_app.studio is None:
             raise SystemExit(f"the studio could not load a model: {studio_app.error}")
@@ -168,7 +180,8 @@ def run(model: str | None, steps: int | None, sampler: str, precision: str, thre
                 times = [two_steps(call, video_api) for call in calls]
                 return [p for p, _ in times], [f for _, f in times]
 
-            # warm-up: text encoder, kernels, renderer (with and without antialiasing), the guidance
+            # warm-up: text encoder, kernels, renderer (with and without antialiasing), the guidance, the render workers
+            _wait_for_render_workers(render_workers)
             two_steps(lambda: generate("a person walks", 99), "/generate_video")
             two_steps(lambda: control("straight", 99), "/control_video")
             report = {}
@@ -199,7 +212,7 @@ def run(model: str | None, steps: int | None, sampler: str, precision: str, thre
     return {"settings": {"model": model or "embedded", "steps": steps, "sampler": sampler, "asked": asked,
                          "control_sampler": guided, "control_steps": guided_steps, "precision": precision,
                          "computed": computed,
-                         "threads": threads, "fetch_all": fetch_all}} | report | {
+                         "threads": threads, "fetch_all": fetch_all, "render_workers": render_workers}} | report | {
             "targets_s": {"generate": GENERATE_TARGET_S, "edit": EDIT_TARGET_S, "control": CONTROL_TARGET_S,
                           "word_click": WORD_TARGET_S}}
 
@@ -226,7 +239,8 @@ def format_table(report: dict) -> str:
     fetched = "every returned file fetched" if s.get("fetch_all") else "videos fetched"
     control = f", control {s['control_sampler']}-{s['control_steps']}" if "control_sampler" in s else ""
     lines = [f"studio latency, {s['model']} model, {s['sampler']}-{s['steps']}{control}, "
-             f"{s['computed']} ({s['precision']}), threads {s['threads'] or 'default'}, {fetched}", "",
+             f"{s['computed']} ({s['precision']}), threads {s['threads'] or 'default'}, "
+             f"{s.get('render_workers', 0)} render worker(s), {fetched}", "",
              f"{'request':36s} {'median s':>9s} {'max s':>7s} {'target s':>9s}  met"]
     for name, key, target in ROWS:
         times = report[key]
@@ -250,11 +264,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="as the studio's --precision (default auto: bf16 autocast from 2 rows a forward where the "
                         "CPU has native bf16)")
     p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--render-workers", type=int, default=1, metavar="N",
+                   help="as the studio's --render-workers (default 1)")
     p.add_argument("--fetch-all", action="store_true",
                    help="download every file a response returns (gradio_client's default), not just its video")
     p.add_argument("--out", type=Path, default=None, help="write the measurements as JSON here")
     a = p.parse_args(argv)
-    report = run(a.model, a.steps, a.sampler, a.precision, a.threads, a.fetch_all)
+    report = run(a.model, a.steps, a.sampler, a.precision, a.threads, a.fetch_all, a.render_workers)
     print(format_table(report))
     if a.out is not None:
         atomic_write_text(a.out, json.dumps(report, indent=2))

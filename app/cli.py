@@ -22,6 +22,9 @@ def parse_args(argv: list[str] | None = None) -> Settings:
     p.add_argument("--precision", choices=PRECISIONS, default="auto",
                    help="auto (default): bf16 autocast for forwards of 2 rows or more (guided steps, edits) on a "
                         "CPU with native bf16, fp32 for single rows and elsewhere; fp32 or bf16: every forward")
+    p.add_argument("--render-workers", type=int, default=1, metavar="N",
+                   help="helper processes that draw a share of every video's frames beside the server (default 1; "
+                        "0 draws in the server alone)")
     p.add_argument("--tmp-dir", type=Path, default=None, help="where the studio's temp folder goes (default: $TMPDIR)")
     p.add_argument("--session-ttl", type=float, default=7200.0,
                    help="seconds after which an idle session and its files are removed (default 7200)")
@@ -42,7 +45,8 @@ def parse_args(argv: list[str] | None = None) -> Settings:
     try:
         return Settings(model=a.model, host=a.host, port=a.port, concurrency=a.concurrency, threads=a.threads,
                         precision=a.precision, tmp_dir=a.tmp_dir, session_ttl_s=a.session_ttl,
-                        control_examples=a.control_examples, clips=clips, sampler=a.sampler)
+                        control_examples=a.control_examples, clips=clips, sampler=a.sampler,
+                        render_workers=a.render_workers)
     except ValueError as exc:
         p.error(str(exc))
 

@@ -27,16 +27,21 @@ class StudioApp:
             self.demo.close()
         finally:
             if self.studio is not None:
+                from salad.render import stop_workers
+
+                stop_workers()
                 self.studio.close()
             self.workspace.close()
 
 
-def _warm_up() -> None:
-    from salad.render import warm_up
+def _warm_up(render_workers: int) -> None:
+    from salad.render import start_workers, warm_up
 
     try:
         backend = warm_up()
-        log.info("renderer ready (%s)", backend)
+        # after the warm-up, which settles the GL platform the workers inherit
+        start_workers(render_workers)
+        log.info("renderer ready (%s, %d render worker(s))", backend, render_workers)
     except Exception:       # renders will then report the problem per request
         log.exception("renderer warm-up failed")
 
@@ -110,7 +115,8 @@ def launch(app: StudioApp, settings: Settings, block: bool = True) -> str:
 
     if app.studio is not None:
         app.workspace.start_janitor(settings.prune_every_s)
-        threading.Thread(target=_warm_up, name="render-warm-up", daemon=True).start()
+        threading.Thread(target=_warm_up, args=(settings.render_workers,), name="render-warm-up",
+                         daemon=True).start()
     # Returned files must lie under the temp dir or the working directory to be served,
     # unless allowed; allow exactly the sessions folder when it lies elsewhere.
     root = app.workspace.sessions

@@ -49,6 +49,7 @@ CLIP_LAYOUT = ("new_joint_vecs", "texts", "test.txt")   # what a dataset build m
 # sampling a generation 1.18 s fp32, 1.21 bf16, 1.10 auto; an edit's 1.91, 1.69, 1.56. One row at a time
 # (the student, unguided steps) bf16 was 10% slower. CPUs without native bf16 run fp32 whatever is asked.
 PRECISIONS = ("auto", "fp32", "bf16")
+MAX_RENDER_WORKERS = 7     # salad.render.workers.MAX_WORKERS
 AUTO_BF16_MIN_ROWS = 2
 
 
@@ -69,6 +70,7 @@ class Settings:
     control_examples: Path | None = None   # a folder of MoLA-style control .npy files offered in the Control tab
     clips: Path | None = None       # a dataset build (HumanML3D layout) whose test clips the Real motion tab offers
     sampler: str = DEFAULT_SAMPLER  # the panels' default sampler (ddim when the model has no student)
+    render_workers: int = 1         # processes that draw a share of each video's frames (salad.render.workers)
 
     def __post_init__(self):
         if not 1 <= self.port <= 65535:
@@ -83,6 +85,8 @@ class Settings:
             raise ValueError(f"sampler must be one of {', '.join(STUDIO_SAMPLERS)}, got {self.sampler!r}")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be positive, got {self.threads}")
+        if not 0 <= self.render_workers <= MAX_RENDER_WORKERS:
+            raise ValueError(f"render workers must be in 0..{MAX_RENDER_WORKERS}, got {self.render_workers}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
         if self.control_examples is not None and not Path(self.control_examples).is_dir():

@@ -26,6 +26,7 @@ from salad.motion.bvh import load_bvh
 
 from app.figures import frames_to_restyle_slider, plot_data
 from app.session import KEEP_RESULTS, Result, ResultGone, Session
+from app.settings import Settings
 from app.studio import Studio, file_stem, word_tint
 from app.ui.handlers import word_choices
 from app.validation import EditRequest, GenerateRequest, parse_attention, parse_control, parse_generate
@@ -57,6 +58,24 @@ def plotly_array(value) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- the API
+
+def test_the_studio_draws_its_videos_with_a_render_worker(client):
+    """The server starts one render worker beside it (--render-workers, default 1), which draws a share of
+    each preview's frames; what it draws is checked against this process's own in test_render_workers."""
+    from app.cli import parse_args
+    from salad.render import workers
+
+    assert Settings().render_workers == 1 and parse_args([]).render_workers == 1
+    assert parse_args(["--render-workers", "0"]).render_workers == 0
+    with pytest.raises(ValueError, match="render workers must be in 0..7"):
+        Settings(render_workers=8)
+    workers.wait_ready(1)
+    worker = workers.running()[0]
+    before = worker.jobs
+    video = generate(client, "a person walks forward", seconds=1.6, seed=7)[0]
+    assert mp4_frames(video).shape[:3] == (16, 320, 320) and 16 >= workers.MIN_SHARED_FRAMES
+    assert worker.jobs > before, "the worker drew a share of the preview"
+
 
 def test_generate_returns_video_figure_and_files(client, pipe):
     out = generate(client, "a person waves their right hand happily", seconds=1.6, seed=3)

@@ -1,8 +1,9 @@
-"""Measure rendering speed: `python -m salad.render.bench [--frames 120] [--sizes 384 448]`.
+"""Measure rendering speed: `python -m salad.render.bench [--frames 120] [--sizes 384 448] [--workers 1]`.
 
 Renders a clip (the HumanML3D sample, or --motion FILE.npy) to MP4 at each size, then the
 studio's edit view (two panels side by side, drawn fresh and with the source panel reused)
-and the attention PNG, and prints wall time, frames per second and where the time went.
+and the attention PNG, and prints wall time, frames per second and where the time went;
+with --workers N, N render workers (salad.render.workers) draw a share of each video.
 Set PYOPENGL_PLATFORM=egl or osmesa to measure one backend; each backend needs its own process.
 """
 from __future__ import annotations
@@ -41,7 +42,7 @@ def _timed(render, frames: int, **row) -> dict:
     st = last_render_stats()
     return dict(row, frames=frames, wall_s=wall, fps=frames / wall, render_cpu_s=cpu,
                 encoder_cpu_s=(c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime),
-                draw_s=st.get("draw_s", 0.0), geometry_s=st.get("geometry_s", 0.0),
+                draw_s=st.get("draw_s", 0.0), worker_frames=st.get("worker_frames", 0),
                 reused_panels=st.get("reused_panels", 0))
 
 
@@ -101,7 +102,7 @@ def describe(r: dict) -> str:
     what = "single      " if r["kind"] == "single" else f"side-by-side ({r['note']})"
     panels = "" if r["kind"] == "single" else f" x2 panels, {r['reused_panels']} reused"
     return (f"{r['backend']:6s} {what} {r['size']:4d}px{panels} {r['frames']} frames: {r['wall_s']:.2f} s "
-            f"({r['fps']:.0f} fps)  draw {r['draw_s']:.2f} s, geometry {r['geometry_s']:.2f} s, "
+            f"({r['fps']:.0f} fps)  draw {r['draw_s']:.2f} s, {r.get('worker_frames', 0)} frames by workers, "
             f"CPU render {r['render_cpu_s']:.2f} s + encoder {r['encoder_cpu_s']:.2f} s; "
             f"first call incl. GL start-up {r['startup_s']:.2f} s")
 
@@ -112,8 +113,14 @@ def main(argv=None) -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[384, 448])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--motion", type=Path, default=None, help="(T, 22, 3) .npy; default: HumanML3D sample")
+    ap.add_argument("--workers", type=int, default=0, help="render workers drawing beside this process (default 0)")
     args = ap.parse_args(argv)
     motion = np.load(args.motion or _default_motion(), allow_pickle=False)
+    if args.workers:
+        from .workers import start, wait_ready
+
+        start(args.workers)
+        wait_ready(args.workers)
     for r in run(motion, args.frames, args.sizes, args.repeats):
         print(describe(r))
 

@@ -253,10 +253,38 @@ class _Panel:
         return np.round(self.camera.targets[t, [0, 2]] / period) * period
 
 
-def _frames(panels: list[_Panel], size: tuple[int, int], fps: float, title: str | None,
-            progress: Progress | None, antialias: bool = True) -> Iterator[np.ndarray]:
-    """Yield finished frames (H, W * n_panels, 3) uint8; shorter motions hold their last frame.
-    antialias=False drops multisampling: about half the time per frame, with jagged edges."""
+def _draw(eng, panels: list[_Panel], which: list[int], ts: Sequence[int], size: tuple[int, int]
+          ) -> Iterator[tuple[int, dict[int, np.ndarray]]]:
+    """Draw panels `which` at frames `ts` (ascending) -> (t, {panel: (H, W, 3) uint8}) per frame, with
+    only the panels whose motion still runs at t (one that has ended holds its last frame: not drawn again).
+    A render worker draws its share of a video with this too."""
+    if len(which) == 1:
+        panels[which[0]].install(eng)
+    ts = np.asarray(ts, int)
+    for start in range(0, len(ts), BLOCK):
+        chunk = ts[start:start + BLOCK]
+        blocks = {p: panels[p].block(np.minimum(chunk, panels[p].n_frames - 1)) for p in which}
+        for i, t in enumerate(chunk):
+            images = {}
+            for p in which:
+                panel = panels[p]
+                if t >= panel.n_frames:
+                    continue
+                if len(which) > 1:
+                    panel.install(eng)
+                images[p] = eng.draw(size, panel.camera.yfov, panel.camera.poses[t], panel.floor_shift(t),
+                                     {k: v[i] for k, v in blocks[p].items()})
+            yield int(t), images
+
+
+def _frames(scene: Scene, panels: list[_Panel], progress: Progress | None,
+            antialias: bool = True) -> Iterator[np.ndarray]:
+    """Yield finished frames (H, W * n_panels, 3) uint8 of `scene` (drawn as `panels`); shorter motions
+    hold their last frame. antialias=False drops multisampling: about half the time per frame, with
+    jagged edges. Idle render workers (salad.render.workers) draw the later frames meanwhile."""
+    from . import workers
+
+    size, title = scene.size, scene.title
     w, h = size
     samples = style.MSAA_SAMPLES if antialias else 0
     total = max(p.n_frames for p in panels)
@@ -270,56 +298,55 @@ def _frames(panels: list[_Panel], size: tuple[int, int], fps: float, title: str 
         if p.tint is not None:
             patches.append(overlay.legend_patch(w, h, p.cmap, p.tint_label))
         statics.append(patches)
-    clock = overlay.Clock(w * len(panels), h, fps, total)
+    clock = overlay.Clock(w * len(panels), h, scene.fps, total)
     # Panels of a side-by-side render are kept and reused (see PanelCache); a single panel is
     # one frame per draw anyway and carries the render's own title.
     keys = [p.cache_key(size, samples) if len(panels) > 1 else None for p in panels]
     reused = [panel_cache.get(k) if k is not None else None for k in keys]
     fresh = [np.empty((p.n_frames, h, w, 3), np.uint8) if k is not None and r is None else None
              for p, k, r in zip(panels, keys, reused)]
-    stats = {"frames": total, "panels": len(panels), "size": size, "geometry_s": 0.0, "draw_s": 0.0,
+    drawn = [i for i, r in enumerate(reused) if r is None]
+    stats = {"frames": total, "panels": len(panels), "size": size, "draw_s": 0.0, "worker_frames": 0,
              "reused_panels": sum(r is not None for r in reused), "backend": gl_backend(), "msaa_samples": samples}
     started = time.perf_counter()
-    with engine() as eng:
+    last: list[np.ndarray | None] = [None] * len(panels)
+    with engine() as eng, workers.shares(scene, drawn, total, samples) as shares:
         eng.renderer.samples = samples
-        drawn = [i for i, r in enumerate(reused) if r is None]
-        if len(drawn) == 1:
-            panels[drawn[0]].install(eng)
-        for start in range(0, total, BLOCK):
-            ts = np.arange(start, min(start + BLOCK, total))
-            t0 = time.perf_counter()
-            blocks = [p.block(np.minimum(ts, p.n_frames - 1)) if r is None else None
-                      for p, r in zip(panels, reused)]
-            stats["geometry_s"] += time.perf_counter() - t0
-            for i, t in enumerate(ts):
+        for lo, hi, job in shares:
+            here = None if job is not None else _draw(eng, panels, drawn, range(lo, hi), size)
+            for t in range(lo, hi):
                 t0 = time.perf_counter()
+                images = job.frame(t) if job is not None else None
+                if images is None:
+                    if here is None:        # the worker failed: this process draws the rest of its share
+                        here = _draw(eng, panels, drawn, range(t, hi), size)
+                    images = next(here)[1]
+                else:
+                    stats["worker_frames"] += 1
                 views = []
-                for p, blk, patches, old, new in zip(panels, blocks, statics, reused, fresh):
+                for i, (p, patches, old, new) in enumerate(zip(panels, statics, reused, fresh)):
                     tp = min(t, p.n_frames - 1)
-                    done = old if old is not None else new if new is not None and t > tp else None
-                    if done is not None:          # reused, or holding its last frame
-                        views.append(done[tp])
+                    if old is not None:
+                        views.append(old[tp])
                         continue
-                    if len(drawn) > 1:
-                        p.install(eng)
-                    drawn_img = eng.draw(size, p.camera.yfov, p.camera.poses[tp], p.floor_shift(tp),
-                                         {k: v[i] for k, v in blk.items()})
-                    if new is None:
-                        img = drawn_img.copy()
-                    else:
-                        img = new[tp]
-                        img[...] = drawn_img
+                    if i not in images:          # holding its last frame
+                        views.append(last[i])
+                        continue
+                    img = images[i].copy() if new is None else new[tp]
+                    if new is not None:
+                        img[...] = images[i]
                     for patch in patches:
                         patch.blend(img)
+                    last[i] = img
                     views.append(img)
-                frame = np.concatenate(views, axis=1) if len(views) > 1 else views[0]
+                frame = np.concatenate(views, axis=1) if len(views) > 1 else views[0].copy()
                 for j in range(1, len(views)):
                     frame[:, j * w] = (frame[:, j * w] * 0.55).astype(np.uint8)  # a thin seam between panels
-                clock.patch(int(t)).blend(frame)
+                clock.patch(t).blend(frame)
                 stats["draw_s"] += time.perf_counter() - t0
                 yield frame
                 if progress is not None:
-                    progress(int(t) + 1, total)
+                    progress(t + 1, total)
     for k, new in zip(keys, fresh):
         if new is not None:
             panel_cache.put(k, new)
@@ -334,18 +361,38 @@ def _panels(motions: Sequence[np.ndarray], size, fps, labels=None, **extra) -> l
     return [_Panel(m, c, label=l, **extra) for m, c, l in zip(motions, cams, labels)]
 
 
-def _single_panel(joints, size, fps, tint, targets, target_mask, trajectory, cmap,
-                  tint_label) -> list[_Panel]:
-    j = _check_joints(joints)
-    tint = _check_tint(tint, len(j))
-    tg = _check_targets(targets, target_mask, len(j))
-    traj = _check_trajectory(trajectory)
-    if tint is not None:
-        style.colormap(np.zeros(1), cmap)  # an unknown colour map fails here, before any work
-    panels = _panels([j], size, fps, tint=tint, trajectory=traj, cmap=cmap, tint_label=str(tint_label))
-    if tg is not None:
-        panels[0].targets = geo.TargetGeometry(tg[0], tg[1], panels[0].skeleton.scale)
-    return panels
+@dataclass
+class Scene:
+    """What a video shows, in plain values: a render worker rebuilds the same panels from them.
+    labels=None: one motion alone (with title, tint, targets, trajectory); else one labelled panel each."""
+
+    motions: list[np.ndarray]
+    size: tuple[int, int]
+    fps: float
+    labels: list[str] | None = None
+    title: str | None = None
+    tint: np.ndarray | None = None
+    targets: np.ndarray | None = None
+    target_mask: np.ndarray | None = None
+    trajectory: np.ndarray | None = None
+    cmap: str = "attention"
+    tint_label: str = "attention"
+
+    def panels(self) -> list[_Panel]:
+        """The panels to draw; checks the scene's arrays on the way (ValueError)."""
+        if self.labels is not None:
+            return _panels(self.motions, self.size, self.fps, labels=self.labels)
+        j = _check_joints(self.motions[0])
+        tint = _check_tint(self.tint, len(j))
+        tg = _check_targets(self.targets, self.target_mask, len(j))
+        traj = _check_trajectory(self.trajectory)
+        if tint is not None:
+            style.colormap(np.zeros(1), self.cmap)  # an unknown colour map fails here, before any work
+        panels = _panels([j], self.size, self.fps, tint=tint, trajectory=traj, cmap=self.cmap,
+                         tint_label=str(self.tint_label))
+        if tg is not None:
+            panels[0].targets = geo.TargetGeometry(tg[0], tg[1], panels[0].skeleton.scale)
+        return panels
 
 
 # ------------------------------------------------------------------ public API
@@ -357,9 +404,9 @@ def render_frames(joints: np.ndarray, fps: float = 20, size: tuple[int, int] = D
                   tint_label: str = "attention", progress: Progress | None = None,
                   antialias: bool = True) -> np.ndarray:
     """Render a motion (T, 22, 3) to frames (T, H, W, 3) uint8; see render_video for options."""
-    size, fps = _check_size(size), _check_fps(fps)
-    panels = _single_panel(joints, size, fps, tint, targets, target_mask, trajectory, cmap, tint_label)
-    with closing(_frames(panels, size, fps, title, progress, antialias)) as frames:
+    scene = Scene([joints], _check_size(size), _check_fps(fps), title=title, tint=tint, targets=targets,
+                  target_mask=target_mask, trajectory=trajectory, cmap=cmap, tint_label=tint_label)
+    with closing(_frames(scene, scene.panels(), progress, antialias)) as frames:
         return np.stack(list(frames))
 
 
@@ -380,10 +427,10 @@ def render_video(joints: np.ndarray, path: str | os.PathLike, fps: float = 20,
     previews. The file appears only once it is complete.
     """
     out = _check_out(path, (".mp4",))
-    size, fps = _check_size(size), _check_fps(fps)
-    panels = _single_panel(joints, size, fps, tint, targets, target_mask, trajectory, cmap, tint_label)
-    with closing(_frames(panels, size, fps, title, progress, antialias)) as frames:
-        _encode(frames, out, fps)
+    scene = Scene([joints], _check_size(size), _check_fps(fps), title=title, tint=tint, targets=targets,
+                  target_mask=target_mask, trajectory=trajectory, cmap=cmap, tint_label=tint_label)
+    with closing(_frames(scene, scene.panels(), progress, antialias)) as frames:
+        _encode(frames, out, scene.fps)
     return out
 
 
@@ -402,9 +449,9 @@ def render_side_by_side(motions: Sequence[np.ndarray], labels: Sequence[str], pa
     labels = list(labels)
     if len(labels) != len(motions):
         raise ValueError(f"labels: expected one label per motion ({len(motions)}), got {len(labels)}")
-    ms = [_check_joints(m, f"motions[{i}]") for i, m in enumerate(motions)]
-    panels = _panels(ms, size, fps, labels=[str(l) for l in labels])
-    with closing(_frames(panels, size, fps, None, progress, antialias)) as frames:
+    scene = Scene([_check_joints(m, f"motions[{i}]") for i, m in enumerate(motions)], size, fps,
+                  labels=[str(l) for l in labels])
+    with closing(_frames(scene, scene.panels(), progress, antialias)) as frames:
         _encode(frames, out, fps)
     return out
 
@@ -490,5 +537,6 @@ def warm_up(size: tuple[int, int] = DEFAULT_SIZE) -> str:
 
 
 def last_render_stats() -> dict:
-    """Timings of the most recent render: frames, panels, size, geometry_s, draw_s, total_s."""
+    """Timings of the most recent render: frames, panels, size, draw_s, total_s, and worker_frames (drawn by
+    render workers)."""
     return dict(_last_stats)
