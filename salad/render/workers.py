@@ -30,6 +30,7 @@ import numpy as np
 
 log = logging.getLogger("salad.render")
 _HEADER = struct.Struct(">I")
+_ARRAY_FIELDS = ("tint", "targets", "target_mask", "trajectory")     # video.Scene's optional arrays
 # A worker's share is only worth its messages for renders of this many frames or more.
 MIN_SHARED_FRAMES = 16
 # This process's share of a render's frames with one worker (with k workers 2 * OWN_SHARE / (k + 1)): it
@@ -86,10 +87,10 @@ def scene_message(scene) -> tuple[dict, list[np.ndarray]]:
         if f.name == "motions":
             arrays += [np.asarray(m, np.float64) for m in value]
             names += ["motions"] * len(value)
-        elif isinstance(value, np.ndarray) or (value is not None and f.name in ("tint", "targets", "target_mask",
-                                                                                "trajectory")):
-            arrays.append(np.asarray(value))
-            names.append(f.name)
+        elif f.name in _ARRAY_FIELDS:
+            if value is not None:
+                arrays.append(np.asarray(value))
+                names.append(f.name)
         else:
             header[f.name] = list(value) if isinstance(value, tuple) else value
     header["array_names"] = names
@@ -202,10 +203,11 @@ class Worker:
                     if header.get("error"):
                         log.warning("render worker %s: %s", self.pid, header["error"])
                     job.end(failed=bool(header.get("error")))
-        except (EOFError, OSError, ValueError) as exc:
+        except Exception as exc:     # EOF, a closed socket, a garbled message: the worker is of no more use
             if self._alive:
-                log.warning("render worker %s stopped: %s", self.pid, exc)
-        self.close()
+                log.warning("render worker %s stopped: %s: %s", self.pid, type(exc).__name__, exc)
+        finally:
+            self.close()
 
     def close(self) -> None:
         with self._state:
