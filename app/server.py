@@ -21,11 +21,13 @@ class StudioApp:
     workspace: Workspace
     studio: "object | None"      # Studio, or None when no model could be loaded
     error: str | None = None
+    closed: bool = False
 
     def close(self) -> None:
         try:
             self.demo.close()
         finally:
+            self.closed = True
             if self.studio is not None:
                 from salad.render import stop_workers
 
@@ -34,13 +36,16 @@ class StudioApp:
             self.workspace.close()
 
 
-def _warm_up(render_workers: int) -> None:
-    from salad.render import start_workers, warm_up
+def _warm_up(app: StudioApp, render_workers: int) -> None:
+    from salad.render import start_workers, stop_workers, warm_up
 
     try:
         backend = warm_up()
         # after the warm-up, which settles the GL platform the workers inherit
         start_workers(render_workers)
+        if app.closed:          # closed meanwhile: no worker outlives its studio
+            stop_workers()
+            return
         log.info("renderer ready (%s, %d render worker(s))", backend, render_workers)
     except Exception:       # renders will then report the problem per request
         log.exception("renderer warm-up failed")
@@ -115,7 +120,7 @@ def launch(app: StudioApp, settings: Settings, block: bool = True) -> str:
 
     if app.studio is not None:
         app.workspace.start_janitor(settings.prune_every_s)
-        threading.Thread(target=_warm_up, args=(settings.render_workers,), name="render-warm-up",
+        threading.Thread(target=_warm_up, args=(app, settings.render_workers), name="render-warm-up",
                          daemon=True).start()
     # Returned files must lie under the temp dir or the working directory to be served,
     # unless allowed; allow exactly the sessions folder when it lies elsewhere.

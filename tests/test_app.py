@@ -684,3 +684,12 @@ def test_the_full_video_brings_the_refined_motions_views_and_files(tiny_model, t
         # asked again, nothing is refined on the way: the views stay
         _, _, *views = client.predict("cm", api_name="/generate_video")
         assert views == [{"__type__": "update"}] * 2
+
+
+def test_a_closed_studio_leaves_no_render_worker(pipe, tmp_path):
+    from salad.render import workers
+
+    with serve_studio(pipe, tmp_path):
+        workers.wait_ready(1)
+        assert len(workers.running()) == 1
+    assert workers.running() == [], "closing the studio stops its render worker"
