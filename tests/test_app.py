@@ -692,4 +692,7 @@ def test_a_closed_studio_leaves_no_render_worker(pipe, tmp_path):
     with serve_studio(pipe, tmp_path):
         workers.wait_ready(1)
         assert len(workers.running()) == 1
+    for thread in threading.enumerate():        # a warm-up still under way stops what it starts once it sees the close
+        if thread.name == "render-warm-up":
+            thread.join(60)
     assert workers.running() == [], "closing the studio stops its render worker"
