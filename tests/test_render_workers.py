@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from salad.render import last_render_stats, render_frames, render_side_by_side, video, workers
+from salad.render.worker_main import scene_from_message
 from tests.conftest import synthetic_walk
 
 SIZE = (128, 128)
@@ -92,16 +93,16 @@ def test_scenes_travel_as_json_and_raw_arrays(walk):
     header, arrays = workers.scene_message(scene)
     ours, theirs = socket.socketpair()
     with ours, theirs:
-        workers._send(ours, {"scene": header}, arrays)
-        got, back = workers._recv(theirs)
-    again = workers.scene_from_message(json.loads(json.dumps(got["scene"])), back)
+        workers.send_message(ours, {"scene": header}, arrays)
+        got, back = workers.recv_message(theirs)
+    again = scene_from_message(json.loads(json.dumps(got["scene"])), back)
     assert again.size == (64, 48) and again.title == "a person walks" and again.labels is None
     assert again.trajectory is None and again.target_mask.dtype == bool
     for name in ("tint", "targets", "target_mask"):
         np.testing.assert_array_equal(getattr(again, name), getattr(scene, name))
     np.testing.assert_array_equal(again.motions[0], walk)
     pair = video.Scene([walk, walk[:5]], (64, 64), 20.0, labels=["a", "b"])
-    back = workers.scene_from_message(*workers.scene_message(pair))
+    back = scene_from_message(*workers.scene_message(pair))
     assert back.labels == ["a", "b"] and [len(m) for m in back.motions] == [len(walk), 5]
 
 

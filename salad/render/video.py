@@ -28,6 +28,7 @@ import salad.render.overlay as overlay
 import salad.render.style as style
 from .backend import gl_backend
 from .engine import engine
+from .workers import shares as worker_shares
 from ..files import atomic_path
 from ..progress import Progress
 
@@ -282,8 +283,6 @@ def _frames(scene: Scene, panels: list[_Panel], progress: Progress | None,
     """Yield finished frames (H, W * n_panels, 3) uint8 of `scene` (drawn as `panels`); shorter motions
     hold their last frame. antialias=False drops multisampling: about half the time per frame, with
     jagged edges. Idle render workers (salad.render.workers) draw the later frames meanwhile."""
-    from . import workers
-
     size, title = scene.size, scene.title
     w, h = size
     samples = style.MSAA_SAMPLES if antialias else 0
@@ -310,7 +309,7 @@ def _frames(scene: Scene, panels: list[_Panel], progress: Progress | None,
              "reused_panels": sum(r is not None for r in reused), "backend": gl_backend(), "msaa_samples": samples}
     started = time.perf_counter()
     last: list[np.ndarray | None] = [None] * len(panels)
-    with engine() as eng, workers.shares(scene, drawn, total, samples) as shares:
+    with engine() as eng, worker_shares(scene, drawn, total, samples) as shares:
         eng.renderer.samples = samples
         for lo, hi, job in shares:
             here = None if job is not None else _draw(eng, panels, drawn, range(lo, hi), size)

@@ -10,6 +10,8 @@ share whose worker fails is drawn here: a render never depends on a worker.
     start(1)    # once, e.g. by a server at start-up (a worker takes ~2-3 s to get ready)
     ...         # every render of this process may use it
     stop()
+
+The worker's own side is salad.render.worker_main.
 """
 from __future__ import annotations
 
@@ -47,7 +49,8 @@ _lock = threading.Lock()
 
 # ------------------------------------------------------------------ messages
 
-def _send(sock: socket.socket, header: dict, arrays: list[np.ndarray] = ()) -> None:
+def send_message(sock: socket.socket, header: dict, arrays: list[np.ndarray] = ()) -> None:
+    """A 4-byte length, the JSON header (with each array's dtype and shape), then the arrays' bytes."""
     arrays = [np.ascontiguousarray(a) for a in arrays]
     header = dict(header, arrays=[[a.dtype.str, list(a.shape)] for a in arrays])
     data = json.dumps(header).encode()
@@ -64,7 +67,7 @@ def _recv_exact(sock: socket.socket, buf: memoryview) -> None:
         buf = buf[n:]
 
 
-def _recv(sock: socket.socket) -> tuple[dict, list[np.ndarray]]:
+def recv_message(sock: socket.socket) -> tuple[dict, list[np.ndarray]]:
     size = bytearray(_HEADER.size)
     _recv_exact(sock, memoryview(size))
     data = bytearray(_HEADER.unpack(size)[0])
@@ -80,7 +83,7 @@ def _recv(sock: socket.socket) -> tuple[dict, list[np.ndarray]]:
 
 
 def scene_message(scene) -> tuple[dict, list[np.ndarray]]:
-    """A video.Scene -> (JSON-able header, arrays) for _send."""
+    """A video.Scene -> (JSON-able header, arrays) for send_message (worker_main.scene_from_message reads it)."""
     header, arrays, names = {}, [], []
     for f in fields(scene):
         value = getattr(scene, f.name)
@@ -95,20 +98,6 @@ def scene_message(scene) -> tuple[dict, list[np.ndarray]]:
             header[f.name] = list(value) if isinstance(value, tuple) else value
     header["array_names"] = names
     return header, arrays
-
-
-def scene_from_message(header: dict, arrays: list[np.ndarray]):
-    from .video import Scene
-
-    values = {k: v for k, v in header.items() if k != "array_names"}
-    values["size"] = tuple(values["size"])
-    values["motions"] = []
-    for name, a in zip(header["array_names"], arrays):
-        if name == "motions":
-            values["motions"].append(a)
-        else:
-            values[name] = a
-    return Scene(**values)
 
 
 # ------------------------------------------------------------------ this process's side
@@ -155,7 +144,7 @@ class Worker:
         ours, theirs = socket.socketpair()
         self._sock = ours
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "salad.render.workers", str(theirs.fileno())], pass_fds=(theirs.fileno(),),
+            [sys.executable, "-m", "salad.render.worker_main", str(theirs.fileno())], pass_fds=(theirs.fileno(),),
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, env=_worker_env())
         theirs.close()
         self.pid = self.process.pid
@@ -180,7 +169,7 @@ class Worker:
             job = self._job = Job(self, self.jobs, lo, hi)
         header, arrays = scene_message(scene)
         try:
-            _send(self._sock, {"op": "draw", "job": job.number, "scene": header, "panels": panels,
+            send_message(self._sock, {"op": "draw", "job": job.number, "scene": header, "panels": panels,
                                "lo": lo, "hi": hi, "samples": samples}, arrays)
         except OSError:
             self.close()
@@ -190,7 +179,7 @@ class Worker:
     def _read(self) -> None:
         try:
             while True:
-                header, arrays = _recv(self._sock)
+                header, arrays = recv_message(self._sock)
                 if header.get("ready"):
                     self.ready.set()
                     continue
@@ -290,46 +279,3 @@ def shares(scene, panels: list[int], total: int, samples: int):
         job = w.draw(scene, panels, int(lo), int(hi), samples) if hi > lo else None
         plan.append((int(lo), int(hi), job))
     yield plan
-
-
-# ------------------------------------------------------------------ the worker's side
-
-def _serve(sock: socket.socket) -> None:
-    from .engine import engine
-    from .video import _draw, warm_up
-
-    warm_up()
-    _send(sock, {"ready": True})
-    while True:
-        try:
-            header, arrays = _recv(sock)
-        except EOFError:
-            return
-        number = header.get("job")
-        try:
-            scene = scene_from_message(header["scene"], arrays)
-            panels = scene.panels()
-            with engine() as eng:
-                eng.renderer.samples = int(header["samples"])
-                for t, images in _draw(eng, panels, header["panels"], range(header["lo"], header["hi"]), scene.size):
-                    _send(sock, {"job": number, "t": t, "panels": list(images)}, list(images.values()))
-            _send(sock, {"job": number})
-        except (EOFError, BrokenPipeError, ConnectionResetError):
-            return
-        except Exception as exc:        # reported, and the share is drawn by the other process
-            _send(sock, {"job": number, "error": f"{type(exc).__name__}: {exc}"})
-
-
-def main(argv: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 1 or not argv[0].isdigit():
-        raise SystemExit("usage: python -m salad.render.workers FD (started by salad.render.workers.start)")
-    sock = socket.socket(fileno=int(argv[0]))
-    try:
-        _serve(sock)
-    finally:
-        sock.close()
-
-
-if __name__ == "__main__":
-    main()
