@@ -113,7 +113,7 @@ def _wait_for_render_workers(count: int) -> None:
 
     try:
         wait_ready(count)
-    except TimeoutError as exc:
+    except (TimeoutError, RuntimeError) as exc:
         raise SystemExit(f"the studio's {exc}") from None
 
 

@@ -2,6 +2,7 @@
 this process would draw, and a worker that fails must cost nothing but time."""
 import json
 import socket
+import time
 
 import numpy as np
 import pytest
@@ -71,6 +72,9 @@ def test_a_worker_that_dies_costs_only_time(walk, no_workers):
 
     np.testing.assert_array_equal(single(walk, progress=kill), alone)
     assert last_render_stats()["worker_frames"] < len(walk)
+    deadline = time.monotonic() + 30        # its reader thread notices the closed socket
+    while worker.idle and time.monotonic() < deadline:
+        time.sleep(0.01)
     assert not worker.idle
     np.testing.assert_array_equal(single(walk), alone)        # without it
     assert last_render_stats()["worker_frames"] == 0

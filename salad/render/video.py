@@ -309,9 +309,9 @@ def _frames(scene: Scene, panels: list[_Panel], progress: Progress | None,
              "reused_panels": sum(r is not None for r in reused), "backend": gl_backend(), "msaa_samples": samples}
     started = time.perf_counter()
     last: list[np.ndarray | None] = [None] * len(panels)
-    with engine() as eng, worker_shares(scene, drawn, total, samples) as shares:
+    with engine() as eng:
         eng.renderer.samples = samples
-        for lo, hi, job in shares:
+        for lo, hi, job in worker_shares(scene, drawn, total, samples):
             here = None if job is not None else _draw(eng, panels, drawn, range(lo, hi), size)
             for t in range(lo, hi):
                 t0 = time.perf_counter()

@@ -25,7 +25,6 @@ import subprocess
 import sys
 import threading
 import time
-from contextlib import contextmanager
 from dataclasses import fields
 
 import numpy as np
@@ -105,8 +104,8 @@ def scene_message(scene) -> tuple[dict, list[np.ndarray]]:
 class Job:
     """Frames of one share, as the worker sends them: frame(t) waits for frame t."""
 
-    def __init__(self, worker: Worker, number: int, lo: int, hi: int):
-        self.worker, self.number, self.lo, self.hi = worker, number, lo, hi
+    def __init__(self, worker: Worker, number: int):
+        self.worker, self.number = worker, number
         self._frames: dict[int, dict[int, np.ndarray]] = {}
         self._cond = threading.Condition()
         self.done = False
@@ -166,11 +165,11 @@ class Worker:
             if not (self._alive and self.ready.is_set() and (self._job is None or self._job.done)):
                 return None
             self.jobs += 1
-            job = self._job = Job(self, self.jobs, lo, hi)
+            job = self._job = Job(self, self.jobs)
         header, arrays = scene_message(scene)
         try:
             send_message(self._sock, {"op": "draw", "job": job.number, "scene": header, "panels": panels,
-                               "lo": lo, "hi": hi, "samples": samples}, arrays)
+                                      "lo": lo, "hi": hi, "samples": samples}, arrays)
         except OSError:
             self.close()
             return None
@@ -253,9 +252,12 @@ def running() -> list[Worker]:
 
 def wait_ready(count: int = 0, timeout_s: float = 60.0) -> None:
     """Return once at least `count` workers run and every one is ready for a render (TimeoutError after
-    timeout_s): `count` for workers that another thread is still to start."""
+    timeout_s, RuntimeError if one has exited): `count` for workers that another thread is still to start."""
     deadline = time.monotonic() + timeout_s
     while len(running()) < count or not all(w.idle for w in running()):
+        exited = [w for w in running() if w.process.poll() is not None]
+        if exited:
+            raise RuntimeError(f"render worker {exited[0].pid} exited with status {exited[0].process.returncode}")
         if time.monotonic() > deadline:
             raise TimeoutError(f"render workers not ready after {timeout_s:.0f} s")
         time.sleep(0.05)
@@ -264,18 +266,16 @@ def wait_ready(count: int = 0, timeout_s: float = 60.0) -> None:
 atexit.register(stop)
 
 
-@contextmanager
-def shares(scene, panels: list[int], total: int, samples: int):
+def shares(scene, panels: list[int], total: int, samples: int) -> list[tuple[int, int, Job | None]]:
     """Split frames 0..total-1 of `scene` into contiguous shares: [(lo, hi, job)], this process's own
-    first (job None), then one per idle worker, which starts drawing it at once."""
+    first (job None), then one per idle worker, which starts drawing its `panels` at once."""
     idle = [w for w in running() if w.idle] if panels and total >= MIN_SHARED_FRAMES else []
     if not idle:
-        yield [(0, total, None)]
-        return
+        return [(0, total, None)]
     own = int(round(total * 2 * OWN_SHARE / (len(idle) + 1)))
     bounds = np.linspace(own, total, len(idle) + 1).round().astype(int)
     plan = [(0, own, None)]
     for w, lo, hi in zip(idle, bounds[:-1], bounds[1:]):
         job = w.draw(scene, panels, int(lo), int(hi), samples) if hi > lo else None
         plan.append((int(lo), int(hi), job))
-    yield plan
+    return plan
