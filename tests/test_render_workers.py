@@ -76,6 +76,8 @@ def test_a_worker_that_dies_costs_only_time(walk, no_workers):
     while worker.idle and time.monotonic() < deadline:
         time.sleep(0.01)
     assert not worker.idle
+    with pytest.raises(RuntimeError, match="exited"):
+        workers.wait_ready()
     np.testing.assert_array_equal(single(walk), alone)        # without it
     assert last_render_stats()["worker_frames"] == 0
     assert ready_worker() is not worker and workers.running()[0].idle, "start() replaces a dead worker"
