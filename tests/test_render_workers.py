@@ -107,6 +107,10 @@ def test_scenes_travel_as_json_and_raw_arrays(walk):
     for name in ("tint", "targets", "target_mask"):
         np.testing.assert_array_equal(getattr(again, name), getattr(scene, name))
     np.testing.assert_array_equal(again.motions[0], walk)
+    ours, theirs = socket.socketpair()
+    with ours, theirs, pytest.raises(ValueError, match="refusing"):
+        ours.sendall(workers._HEADER.pack(len(b'{"arrays": [["|O", [1]]]}')) + b'{"arrays": [["|O", [1]]]}')
+        workers.recv_message(theirs)
     pair = video.Scene([walk, walk[:5]], (64, 64), 20.0, labels=["a", "b"])
     back = scene_from_message(*workers.scene_message(pair))
     assert back.labels == ["a", "b"] and [len(m) for m in back.motions] == [len(walk), 5]

@@ -74,7 +74,10 @@ def recv_message(sock: socket.socket) -> tuple[dict, list[np.ndarray]]:
     header = json.loads(data)
     arrays = []
     for dtype, shape in header.pop("arrays"):
-        a = np.empty(shape, np.dtype(dtype))
+        dt = np.dtype(dtype)
+        if dt.hasobject:        # raw bytes never make Python objects
+            raise ValueError(f"refusing an array of dtype {dt} in a render message")
+        a = np.empty(shape, dt)
         if a.nbytes:
             _recv_exact(sock, memoryview(a).cast("B"))
         arrays.append(a)
