@@ -254,7 +254,7 @@ class _Panel:
         return np.round(self.camera.targets[t, [0, 2]] / period) * period
 
 
-def _draw(eng, panels: list[_Panel], which: list[int], ts: Sequence[int], size: tuple[int, int]
+def draw_panels(eng, panels: list[_Panel], which: list[int], ts: Sequence[int], size: tuple[int, int]
           ) -> Iterator[tuple[int, dict[int, np.ndarray]]]:
     """Draw panels `which` at frames `ts` (ascending) -> (t, {panel: (H, W, 3) uint8}) per frame, with
     only the panels whose motion still runs at t (one that has ended holds its last frame: not drawn again).
@@ -312,13 +312,13 @@ def _frames(scene: Scene, panels: list[_Panel], progress: Progress | None,
     with engine() as eng:
         eng.renderer.samples = samples
         for lo, hi, job in worker_shares(scene, drawn, total, samples):
-            here = None if job is not None else _draw(eng, panels, drawn, range(lo, hi), size)
+            here = None if job is not None else draw_panels(eng, panels, drawn, range(lo, hi), size)
             for t in range(lo, hi):
                 t0 = time.perf_counter()
                 images = job.frame(t) if job is not None else None
                 if images is None:
                     if here is None:        # the worker failed: this process draws the rest of its share
-                        here = _draw(eng, panels, drawn, range(t, hi), size)
+                        here = draw_panels(eng, panels, drawn, range(t, hi), size)
                     images = next(here)[1]
                 else:
                     stats["worker_frames"] += 1

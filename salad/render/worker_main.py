@@ -9,7 +9,7 @@ import sys
 import numpy as np
 
 from .engine import engine
-from .video import Scene, _draw, warm_up
+from .video import Scene, draw_panels, warm_up
 from .workers import recv_message, send_message
 
 
@@ -40,7 +40,8 @@ def serve(sock: socket.socket) -> None:
             panels = scene.panels()
             with engine() as eng:
                 eng.renderer.samples = int(header["samples"])
-                for t, images in _draw(eng, panels, header["panels"], range(header["lo"], header["hi"]), scene.size):
+                frames = range(header["lo"], header["hi"])
+                for t, images in draw_panels(eng, panels, header["panels"], frames, scene.size):
                     send_message(sock, {"job": number, "t": t, "panels": list(images)}, list(images.values()))
             send_message(sock, {"job": number})
         except (EOFError, BrokenPipeError, ConnectionResetError):
