@@ -331,14 +331,17 @@ def _frames(scene: Scene, panels: list[_Panel], progress: Progress | None,
                     if i not in images:          # holding its last frame
                         views.append(last[i])
                         continue
-                    img = images[i].copy() if new is None else new[tp]
-                    if new is not None:
+                    if new is None:
+                        img = images[i].copy()
+                    else:
+                        img = new[tp]
                         img[...] = images[i]
                     for patch in patches:
                         patch.blend(img)
                     last[i] = img
                     views.append(img)
-                frame = np.concatenate(views, axis=1) if len(views) > 1 else views[0].copy()
+                # a single panel is never held nor cached, so its view is this frame's own image
+                frame = np.concatenate(views, axis=1) if len(views) > 1 else views[0]
                 for j in range(1, len(views)):
                     frame[:, j * w] = (frame[:, j * w] * 0.55).astype(np.uint8)  # a thin seam between panels
                 clock.patch(t).blend(frame)

@@ -160,12 +160,16 @@ class Worker:
     @property
     def idle(self) -> bool:
         with self._state:
-            return self._alive and self.ready.is_set() and (self._job is None or self._job.done)
+            return self._free()
+
+    def _free(self) -> bool:
+        """Alive, ready and without a share still drawing (call with _state held)."""
+        return self._alive and self.ready.is_set() and (self._job is None or self._job.done)
 
     def draw(self, scene, panels: list[int], lo: int, hi: int, samples: int) -> Job | None:
         """Start drawing frames lo..hi-1 of `scene`'s `panels`; None if the worker cannot take it."""
         with self._state:
-            if not (self._alive and self.ready.is_set() and (self._job is None or self._job.done)):
+            if not self._free():
                 return None
             self.jobs += 1
             job = self._job = Job(self, self.jobs)
