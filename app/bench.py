@@ -4,7 +4,9 @@ It serves the studio on a free local port with the given model and, with gradio_
 each request from the call to the finished response and the video it returns fetched, as the page
 fetches it to play it (the other files are links the page fetches only when clicked; --fetch-all
 downloads every returned file, as gradio_client does by default and as this benchmark did before the
-preview came in). A result comes in two steps, as on the page: its main event
+preview came in). The same fixed matmul reference as `salad bench` (50 fp32 1024² matmuls) is measured just
+before and just after the timed requests, so that runs on machines (or hours) of different speed can be
+compared. A result comes in two steps, as on the page: its main event
 ("generate", "edit", "control") answers with a preview video (rendered without antialiasing) and
 everything else it shows, then the chained "*_video" event renders the antialiased MP4 (the
 download) in its place. The rows:
@@ -41,6 +43,7 @@ from pathlib import Path
 
 import httpx
 
+from salad.bench import matmul_reference_ms
 from salad.files import atomic_write_text
 
 from .settings import PRECISIONS
@@ -184,6 +187,7 @@ def run(model: str | None, steps: int | None, sampler: str, precision: str, thre
             _wait_for_render_workers(render_workers)
             two_steps(lambda: generate("a person walks", 99), "/generate_video")
             two_steps(lambda: control("straight", 99), "/control_video")
+            reference = [matmul_reference_ms()]
             report = {}
             report["generate_s"], report["generate_full_s"] = series(
                 [lambda p=p: generate(p, 0) for p in PROMPTS], "/generate_video")
@@ -205,6 +209,7 @@ def run(model: str | None, steps: int | None, sampler: str, precision: str, thre
             report["control_s"], report["control_full_s"] = series(
                 [lambda p=p: control(p, 0) for p in CONTROLS], "/control_video")
             report["word_click_s"] = word_clicks(client, generate(PROMPTS[0], 0))
+            report["matmul_reference_ms"] = reference + [matmul_reference_ms()]
         finally:
             http.close()
             studio_app.close()
@@ -240,7 +245,11 @@ def format_table(report: dict) -> str:
     control = f", control {s['control_sampler']}-{s['control_steps']}" if "control_sampler" in s else ""
     lines = [f"studio latency, {s['model']} model, {s['sampler']}-{s['steps']}{control}, "
              f"{s['computed']} ({s['precision']}), threads {s['threads'] or 'default'}, "
-             f"{s.get('render_workers', 0)} render worker(s), {fetched}", "",
+             f"{s.get('render_workers', 0)} render worker(s), {fetched}"]
+    if "matmul_reference_ms" in report:
+        before, after = report["matmul_reference_ms"]
+        lines.append(f"50 fp32 1024² matmuls: {before:.0f} ms before the requests, {after:.0f} ms after")
+    lines += ["",
              f"{'request':36s} {'median s':>9s} {'max s':>7s} {'target s':>9s}  met"]
     for name, key, target in ROWS:
         times = report[key]

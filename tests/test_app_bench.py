@@ -23,6 +23,9 @@ def test_studio_latency_bench_times_every_request(tiny_model):
     # the studio's default precision, as this CPU computes it
     assert report["settings"]["computed"] in ("fp32", "bf16 autocast from 2 rows a forward")
     assert f"{report['settings']['computed']} (auto)" in table.splitlines()[0]
+    # the machine's speed, measured around the requests, beside them
+    assert len(report["matmul_reference_ms"]) == 2 and all(ms > 0 for ms in report["matmul_reference_ms"])
+    assert table.splitlines()[1].startswith("50 fp32 1024² matmuls: ")
     full_row = next(line for line in table.splitlines() if line.startswith("generate → full video"))
     assert full_row.split()[-1] == "-", "the full-video rows have no target"
 
