@@ -5,7 +5,7 @@ a parallel torch op, every team slowed down (OpenMP stops spinning between a tea
 when it manages more threads than there are cores). Gradio runs each event on a worker thread of
 its own, so the studio sampled at half speed or worse: the 50-step teacher took 2.9-3.2 s per
 motion on a worker thread against 1.4-1.5 s on the thread that had loaded it, the student
-0.27-0.48 s against 0.10-0.23 (2 cores; README, *Limitations*, studio latency). So the studio
+0.27-0.48 s against 0.10-0.23 (2 cores; assets/RESULTS.md, *Limitations, in detail*, studio latency). So the studio
 loads the pipeline on this thread, runs every model call here, one at a time, and leaves every
 other thread one core's worth of torch (`own_torch`).
 """

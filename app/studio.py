@@ -152,7 +152,7 @@ class Studio:
         control = sampler
         if sampler == "auto":
             # the student starts only the panels its checkpoint says it was measured fit for (the embedded
-            # one: guided control, not motions from text; README, *The shipped pair*); otherwise text takes the
+            # one: guided control, not motions from text; assets/RESULTS.md, *The shipped pair*); otherwise text takes the
             # teacher in dpm-sde's 25 steps (DDIM-50's fidelity table in half the time) and guided
             # control DDIM, the one teacher sampler it guides
             sampler = "consistency" if pipe.student_preferred("text") else "dpm-sde"

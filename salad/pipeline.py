@@ -82,7 +82,7 @@ LATENT_PROJECTIONS = 0
 # latent is refined by L-BFGS within this many loss evaluations (guidance.planted_feet_loss), so the legs
 # and the root move with the feet as the decoder would move them (the foot lock afterwards has little left
 # to do). The denoiser alone lets planted feet slide: its error builds up over the sampling steps
-# (README, *Feet*). 0 turns it off. Motions whose planted feet already move slower than
+# (assets/RESULTS.md, *Feet*). 0 turns it off. Motions whose planted feet already move slower than
 # STILL_FEET_MPS (rms) are left as they are: standing actions cost nothing.
 FOOT_REFINE_EVALUATIONS = 20
 STILL_FEET_MPS = 0.1
@@ -92,7 +92,7 @@ STILL_FEET_MPS = 0.1
 # (skating 0.042), without them one path strayed over 20 cm.
 CONTROL_FEET_TARGETS = 0.1
 # dpm-sde at 25 steps: the fidelity table of ancestral DDIM-50 (six seeds pooled, sets a / b: 26 / 25 classes raw
-# either way) in half the forwards; at 20 steps it lost set a's punch (session 51, README, Limitations).
+# either way) in half the forwards; at 20 steps it lost set a's punch (session 51, assets/RESULTS.md, Limitations).
 DEFAULT_STEPS = {"ddim": 50, "dpm": 50, "dpm-sde": 25, "consistency": 4}
 # Recorded source runs kept for edits to replay (salad.editing.replay): the teacher's record of a 9.8 s
 # canvas at 50 steps is about 90 MB in float32. Two cover a generated motion and the edit source before it.

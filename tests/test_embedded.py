@@ -26,7 +26,7 @@ def test_embedded_model_makes_a_plausible_motion_of_the_requested_length(pipe):
 
 
 def test_embedded_student_is_recorded_fit_for_guided_control_only(pipe):
-    """It misses its fidelity bound on motions from text (README, *The shipped pair*), so the studio's
+    """It misses its fidelity bound on motions from text (assets/RESULTS.md, *The shipped pair*), so the studio's
     text panels start on the teacher."""
     assert pipe.student is not None
     assert pipe.student_preferred("control") and not pipe.student_preferred("text")

@@ -68,7 +68,7 @@ def test_untrained_actions_and_other_languages_are_flagged_with_the_nearest_know
 
 
 def test_a_side_given_to_a_part_no_caption_sides_is_flagged(embedded_check):
-    # The Bandai captions side hands and arms only; a named leg derails the kick (README, Limitations).
+    # The Bandai captions side hands and arms only; a named leg derails the kick (README and assets/RESULTS.md, Limitations).
     assert embedded_check.sided_parts() == {"hand", "arm"}
     kick = embedded_check.warnings("a man kicks with his right leg")
     assert len(kick) == 1 and "no training caption names the right leg" in kick[0] and "arm, hand" in kick[0]

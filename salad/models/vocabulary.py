@@ -56,7 +56,7 @@ IN_PLACE_SPEED = 0.25
 
 # A side given to a body part no training caption gives one to is read by the side word alone, which
 # the captions tie to the parts they do side: the Bandai captions side only hands and arms, and "a man
-# kicks with his right leg" came out as a goodbye in 1-2 of 3 seeds (README, Limitations).
+# kicks with his right leg" came out as a goodbye in 1-2 of 3 seeds (assets/RESULTS.md, Limitations).
 SIDES = ("left", "right")
 BODY_PARTS = frozenset({"hand", "arm", "leg", "foot", "feet", "knee", "shoulder", "elbow", "wrist", "fist",
                         "hip", "ankle", "toe", "heel", "thigh"})
