@@ -263,3 +263,27 @@ def test_runs_with_other_seeds_pool_into_one_table_judged_on_every_seed(tmp_path
                  "--out", str(tmp_path / "both")]) == 0
     res = json.loads((tmp_path / "both" / "results.json").read_text())
     assert res["summary"]["raw"]["passed"] == 1 and res["settings"]["pooled_seeds"] == [0, 1, 2, 3, 4, 5]
+
+
+def test_stored_runs_compare_side_by_side_with_the_checks_that_fail(tmp_path, capsys):
+    from salad.cli import main
+    runs = {"right": _stored_bye_run("right"), "left": _stored_bye_run("left")}
+    runs["left"]["settings"]["prompt_set"] = "b"
+    runs["left"]["rows"].append({**runs["left"]["rows"][0], "class": "byebye"})      # a class only one run has
+    for name, run in runs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps(run))
+    out = tmp_path / "compare.md"
+    assert main(["eval-fidelity", "--compare", str(tmp_path / "right"), f"{tmp_path / 'left'}:clean",
+                 "--out", str(out)]) == 0
+    table = out.read_text()
+    assert table == capsys.readouterr().out
+    head, _, bye, byebye, passed = table.splitlines()
+    assert head == ("| class | set a, ddim 50, 3 seeds, raw | set b, ddim 50, 3 seeds, after the foot lock |")
+    # judged under the current rules, as --rejudge would: the right hand is the one the prompt names
+    assert bye == "| bye | ✓ | ✗ side 0.00 right |"
+    assert byebye == "| byebye | – | ✗ side 0.00 right |"
+    assert passed == "| classes passed | **1 / 1** | **0 / 2** |"
+    assert main(["eval-fidelity", "--compare", str(tmp_path / "nowhere")]) == 2
+    assert "not a readable eval-fidelity result" in capsys.readouterr().err
+    assert main(["eval-fidelity", "--compare", str(tmp_path / "right"), "--rejudge", str(tmp_path / "right")]) == 2

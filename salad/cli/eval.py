@@ -14,7 +14,7 @@ from ..eval.classifiers import load_classifier
 from ..eval.control_bench import OMNICONTROL_JOINTS, evaluate_control, parse_density, parse_joints, write_control_report
 from ..eval.edit_bench import run_edit_benchmark
 from ..eval.edit_suite import DEFAULT_SCALES, MODES, SUITES, default_suite
-from ..eval.fidelity import evaluate_fidelity, fidelity_classes, pool, rejudge, report_markdown
+from ..eval.fidelity import compare_markdown, evaluate_fidelity, fidelity_classes, pool, rejudge, report_markdown
 from ..eval.length_dist import DEFAULT_BIN_FRAMES, MIN_FRAMES, evaluate_lengths, write_length_report
 from ..eval.paraphrases import PROMPT_SETS
 from ..eval.real_edit_bench import SDEDIT_STRENGTHS, run_real_edit_bench
@@ -216,6 +216,10 @@ def add_eval_fidelity(sub) -> None:
                         "reference clips are also chosen and measured again (the current reference rule). Several "
                         "DIRs (runs of the same settings with other seeds, e.g. --first-seed 0 and 3) are pooled "
                         "into one table judged on all their seeds; --out is then required")
+    p.add_argument("--compare", metavar="DIR[:clean]", nargs="+", default=None,
+                   help="stored runs side by side, judged under the current rules: a row per class, a column per "
+                        "run's raw table (DIR:clean: its table after the foot lock), a cell the checks that fail; "
+                        "prints it as Markdown, and writes it to --out (a .md file) when given")
     p.add_argument("--model", default=None, help="model directory (default: the embedded model)")
     p.add_argument("--classes", default=None, help="comma list of classes (default: all), e.g. walk,kick")
     p.add_argument("--seeds", type=int, default=3)
@@ -242,6 +246,10 @@ def add_eval_fidelity(sub) -> None:
 def cmd_eval_fidelity(a) -> int:
     from ..pipeline import load_pipeline
 
+    if a.compare:
+        if a.rejudge:
+            raise ValueError("--compare and --rejudge are separate uses of eval-fidelity; give one")
+        return _compare_fidelity(a.compare, Path(a.out) if a.out else None)
     if a.rejudge:
         if len(a.rejudge) > 1 and not a.out:
             raise ValueError("pooling several runs (--rejudge DIR DIR...) needs --out")
@@ -281,6 +289,24 @@ def _rejudge_fidelity(sources: list[Path], out: Path, data: str | None) -> int:
             raise ValueError(f"{src / 'results.json'} is not a readable eval-fidelity result: {e}") from None
     results = rejudge(pool(stored) if len(stored) > 1 else stored[0], data)
     _write_fidelity(results, out)
+    return 0
+
+
+def _compare_fidelity(specs: list[str], out: Path | None) -> int:
+    runs = []
+    for spec in specs:
+        src, _, variant = spec.rpartition(":")
+        if variant not in ("raw", "clean"):
+            src, variant = spec, "raw"
+        path = Path(src) / "results.json"
+        try:
+            runs.append((rejudge(json.loads(path.read_text())), variant))
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"{path} is not a readable eval-fidelity result: {e}") from None
+    table = compare_markdown(runs)
+    if out is not None:
+        atomic_write_text(out, table)
+    print(table, end="")
     return 0
 
 

@@ -387,11 +387,15 @@ def summary(rows: list[dict], classifier=None) -> dict:
     return out
 
 
-def _cell(check: str, v: dict) -> str:
+def _values(check: str, v: dict) -> str:
     if check == "side":
-        return f"{v['generated']:.2f} {v['real']}" + ("" if v["pass"] else " ✗")
+        return f"{v['generated']:.2f} {v['real']}"
     fmt = "{:.0f}" if check == "turn_deg" else "{:.2f}"
-    return f"{fmt.format(v['generated'])} / {fmt.format(v['real'])}" + ("" if v["pass"] else " ✗")
+    return f"{fmt.format(v['generated'])} / {fmt.format(v['real'])}"
+
+
+def _cell(check: str, v: dict) -> str:
+    return _values(check, v) + ("" if v["pass"] else " ✗")
 
 
 def _classified_cell(c: dict) -> str:
@@ -414,6 +418,49 @@ def describe_seeds(s: dict) -> str:
     if s.get("pooled_seeds") and s["pooled_seeds"] != list(range(first, first + s["seeds"])):
         return f"{s['seeds']} seeds ({', '.join(map(str, s['pooled_seeds']))})"
     return f"{s['seeds']} seeds" if not first else f"{s['seeds']} seeds ({first}-{first + s['seeds'] - 1})"
+
+
+# how a comparison table names a failed check
+CHECK_NAMES = {"duration_s": "length", "root_speed_mps": "speed", "turn_deg": "turn", "side": "side",
+               "hand_height_m": "hand", "leg_lift_m": "leg lift", "bow_depth_m": "bow depth",
+               "still_foot_share": "still foot", "jerk_mps3": "jerk"}
+
+
+def _failures_cell(v: dict) -> str:
+    if v["pass"]:
+        return "✓"
+    failed = [f"{CHECK_NAMES.get(c, c)} {_values(c, r)}" for c, r in v["checks"].items() if not r["pass"]]
+    return "✗ " + ", ".join(failed)
+
+
+def compare_markdown(runs: list[tuple[dict, str]]) -> str:
+    """Several runs side by side: a row per class, a column per (results, "raw" or "clean"); a cell is ✓
+    where the class passes, else its failing checks, generated / real median ("–": the run has no such class).
+    The results are judged as they stand (rejudge them first for the current rules)."""
+    if not runs:
+        raise ValueError("nothing to compare")
+    heads, classes = [], []
+    for results, variant in runs:
+        if variant not in ("raw", "clean"):
+            raise ValueError(f"a column is the raw or the clean table, got {variant!r}")
+        s = results["settings"]
+        heads.append(f"set {s.get('prompt_set', 'a')}, {s['sampler']} {s['steps']}, {describe_seeds(s)}, "
+                     + ("raw" if variant == "raw" else "after the foot lock"))
+        classes += [r["class"] for r in results["rows"] if r["class"] not in classes]
+    lines = ["| class | " + " | ".join(heads) + " |", "|---|" + "---|" * len(runs)]
+    for cls in classes:
+        cells = []
+        for results, variant in runs:
+            row = next((r for r in results["rows"] if r["class"] == cls), None)
+            cells.append("–" if row is None else _failures_cell(row[variant]))
+        lines.append(f"| {cls} | " + " | ".join(cells) + " |")
+    lines.append("| classes passed | " + " | ".join(
+        f"**{r['summary'][v]['passed']} / {r['summary'][v]['classes']}**" for r, v in runs) + " |")
+    read = [r["summary"].get("classified") for r, _ in runs]
+    if any(read):
+        lines.append("| read as their action | " + " | ".join(
+            f"{100 * c['share']:.1f}%" if c else "–" for c in read) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def report_markdown(results: dict) -> str:
