@@ -280,16 +280,19 @@ def cmd_eval_fidelity(a) -> int:
 def _rejudge_fidelity(sources: list[Path], out: Path, data: str | None) -> int:
     if data is not None:
         read_labels(data)                         # a dataset that cannot be read says so before anything else
-    stored = []
-    for src in sources:
-        try:
-            stored.append(json.loads((src / "results.json").read_text()))
-            rejudge(stored[-1])
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise ValueError(f"{src / 'results.json'} is not a readable eval-fidelity result: {e}") from None
+    stored = [_stored_fidelity(src)[0] for src in sources]
     results = rejudge(pool(stored) if len(stored) > 1 else stored[0], data)
     _write_fidelity(results, out)
     return 0
+
+
+def _stored_fidelity(src: Path) -> tuple[dict, dict]:
+    """A stored run's results as stored, and judged again under the current rules."""
+    try:
+        stored = json.loads((src / "results.json").read_text())
+        return stored, rejudge(stored)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{src / 'results.json'} is not a readable eval-fidelity result: {e}") from None
 
 
 def _compare_fidelity(specs: list[str], out: Path | None) -> int:
@@ -298,11 +301,7 @@ def _compare_fidelity(specs: list[str], out: Path | None) -> int:
         src, _, variant = spec.rpartition(":")
         if variant not in ("raw", "clean"):
             src, variant = spec, "raw"
-        path = Path(src) / "results.json"
-        try:
-            runs.append((rejudge(json.loads(path.read_text())), variant))
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise ValueError(f"{path} is not a readable eval-fidelity result: {e}") from None
+        runs.append((_stored_fidelity(Path(src))[1], variant))
     table = compare_markdown(runs)
     if out is not None:
         atomic_write_text(out, table)

@@ -255,7 +255,7 @@ class _Panel:
 
 
 def draw_panels(eng, panels: list[_Panel], which: list[int], ts: Sequence[int], size: tuple[int, int]
-          ) -> Iterator[tuple[int, dict[int, np.ndarray]]]:
+                ) -> Iterator[tuple[int, dict[int, np.ndarray]]]:
     """Draw panels `which` at frames `ts` (ascending) -> (t, {panel: (H, W, 3) uint8}) per frame, with
     only the panels whose motion still runs at t (one that has ended holds its last frame: not drawn again).
     A render worker draws its share of a video with this too."""
