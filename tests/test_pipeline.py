@@ -307,3 +307,17 @@ def test_the_compile_flag_reaches_the_pipeline(tiny_model):
         assert pipe.compiled == {}
         apply_sampling(pipe, parser.parse_args(argv + ["--compile"]))
         assert set(pipe.compiled) == {"denoiser", "decoder"}          # the tiny model has no student
+
+
+def test_the_cli_progress_bar_rates_from_its_first_report():
+    from salad.cli.common import LazyBar
+
+    bar = LazyBar("sampling")
+    bar.update(1, 50)                       # the bar appears at the first step, already one step in
+    try:
+        assert bar.bar.n == 1 and bar.bar.total == 50
+        assert "?it/s" in str(bar.bar)      # no rate from a step that took no time on this bar
+        bar.update(2, 64)                   # the length watch can lengthen the run
+        assert bar.bar.total == 64 and bar.bar.n == 2
+    finally:
+        bar.close()

@@ -16,7 +16,8 @@ class LazyBar:
     def update(self, i: int, n: int) -> None:
         if self.bar is None:
             from tqdm import tqdm
-            self.bar = tqdm(total=n, desc=self.desc, leave=False)
+            # counted from the first report, or the rate shown first is one step over no time
+            self.bar = tqdm(total=n, initial=i, desc=self.desc, leave=False)
         self.bar.total = n
         self.bar.n = i
         self.bar.refresh()
