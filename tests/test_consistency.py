@@ -218,12 +218,74 @@ def test_trajectory_distillation_replays_its_solves_and_resumes(tiny_model, tiny
     assert doc["meta"]["train_config"]["target"] == "trajectory" and student.guidance_mlp[-1].weight.abs().sum() > 0
 
 
+def test_the_adversarial_term_is_held_at_its_share_of_the_students_gradient(tiny_model):
+    """The student's adversarial gradient on its clean estimates is lambda_adv times the consistency
+    loss's, whatever the discriminator's scale; the discriminator's own loss reaches only it."""
+    from salad.models.discriminator import DiscriminatorConfig, LatentDiscriminator
+    from salad.models.io import load_denoiser
+    from salad.training.consistency_task import ConsistencyTraining
+
+    teacher, _ = load_denoiser(tiny_model / "denoiser")
+    c = teacher.config
+    torch.manual_seed(0)
+    disc = LatentDiscriminator(c.parts, c.latent_dim, c.text_dim, DiscriminatorConfig(width=8, levels=1))
+    m = ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "trajectory",
+                            teacher_steps=6, discriminator=disc, lambda_adv=0.25)
+    g = torch.Generator().manual_seed(0)
+    shape = (3, 5, c.parts, c.latent_dim)
+    pred, target, real = (torch.randn(shape, generator=g) for _ in range(3))
+    pred.requires_grad_(True)
+    cond = {"frame_mask": torch.arange(5)[None] < torch.tensor([[5], [3], [4]]), "pooled": torch.randn(3, c.text_dim)}
+    for scale in (1.0, 30.0):
+        with torch.no_grad():
+            disc.san.weight.mul_(scale)
+        loss = m._huber(pred, target, cond["frame_mask"])
+        total, logs = m._with_adversarial(loss, pred, real, cond, {})
+        g_rec, = torch.autograd.grad(loss, pred, retain_graph=True)
+        g_all, = torch.autograd.grad(total, pred, retain_graph=True)
+        assert float((g_all - g_rec).norm() / g_rec.norm()) == pytest.approx(0.25, rel=1e-3)
+        assert {"g_adv", "adv_weight", "d_gap", "d_real", "d_fake"} <= set(logs)
+        # the discriminator learns from its loss: its parameters get gradient, the teacher's none
+        grads = torch.autograd.grad(total, list(disc.parameters()))
+        assert all(float(x.abs().sum()) > 0 for x in grads)
+    assert ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001,
+                               discriminator=disc, lambda_adv=0.0).disc is None
+    with pytest.raises(ValueError, match="lambda_adv"):
+        ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, lambda_adv=0.5)
+
+
+def test_adversarial_distillation_trains_and_resumes(tiny_model, tiny_dataset, tmp_path):
+    from salad.checkpoint import load_checkpoint
+    from salad.cli import main
+
+    run = tmp_path / "run"
+    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\n'
+             '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=3, extra=extra)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
+    _, parts = load_checkpoint(run / "state")
+    first = {k: v.clone() for k, v in parts["model"].items() if k.startswith("disc.")}
+    assert first and any(k.startswith("disc.text.") for k in first)
+    consistency_toml(cfg, tiny_dataset, tiny_model, steps=5, extra=extra)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
+    rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [1, 2, 3, 4, 5]
+    assert all(np.isfinite(r["g_adv"]) and r["adv_weight"] > 0 and np.isfinite(r["d_gap"]) for r in rows)
+    _, parts = load_checkpoint(run / "state")
+    assert any(not torch.equal(parts["model"][k], v) for k, v in first.items())
+    # the export is the student alone: it loads as any student does
+    from salad.models.io import load_consistency_student
+    student, _, _ = load_consistency_student(run / "model")
+    assert not any(k.startswith("disc") for k in student.state_dict())
+
+
 def test_distillation_config_errors_are_clear(tiny_model, tiny_dataset, tmp_path, capsys):
     from salad.cli import main
 
     for extra, message in (('target = "progressive"', "target must be one of lcd, trajectory"),
                            ("replay = 0", "replay must be >= 1"),
-                           ("cfg_cutoff = 1.0", "cfg_cutoff must be in [0, 1)")):
+                           ("cfg_cutoff = 1.0", "cfg_cutoff must be in [0, 1)"),
+                           ("lambda_adv = -0.1", "lambda_adv must be >= 0")):
         cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra)
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
         assert message in capsys.readouterr().err

@@ -8,8 +8,8 @@ import torch
 
 from salad.checkpoint import CheckpointError
 from salad.config import ConfigError
-from salad.models.discriminator import (DiscriminatorConfig, SANDiscriminator, san_discriminator_loss,
-                                        san_generator_loss)
+from salad.models.discriminator import (DiscriminatorConfig, LatentDiscriminator, SANDiscriminator,
+                                        san_discriminator_loss, san_generator_loss)
 from salad.models.io import load_vae, save_vae, vae_checksum, vae_latent_checksums, vae_latent_sources
 from salad.pipeline import load_pipeline
 from salad.training.configs import DataConfig, OptimConfig, RunConfig, VAESANTrainConfig
@@ -17,6 +17,23 @@ from salad.training.loop import Trainer
 from salad.training.vae_adv_task import VAESANTask, encoder_state
 
 SMALL = DiscriminatorConfig(width=16, levels=2, blocks_per_level=1)
+
+
+def test_the_latent_discriminator_judges_frames_given_the_prompt():
+    """Any latent length (padded to whole patches), frames past a motion's end not judged, and the
+    prompt changes the verdict on the same motion."""
+    torch.manual_seed(0)
+    d = LatentDiscriminator(parts=7, latent_dim=4, text_dim=12, config=SMALL)
+    z, pooled = torch.randn(2, 11, 7, 4), torch.randn(2, 12)
+    valid = torch.arange(11)[None] < torch.tensor([[11], [6]])
+    logits = d(z, pooled, valid)
+    assert logits.shape == (2, 3) and d.patch_mask(z, valid).tolist() == [[True] * 3, [True, True, False]]
+    later = z.clone()
+    later[1, 6:] = torch.randn(5, 7, 4)
+    assert torch.equal(d(later, pooled, valid)[1], logits[1])
+    assert not torch.allclose(d(z, pooled.flip(0), valid), logits)
+    out = d.san_logits(z, pooled, valid)
+    assert torch.allclose(out.hinge, logits) and torch.allclose(out.direction, logits)
 
 
 def test_direction_is_unit_norm_and_the_two_terms_update_orthogonal_parts():

@@ -15,7 +15,7 @@ the gradient of |w| is parallel to it, so the two objectives update orthogonal c
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn as nn
@@ -102,6 +102,41 @@ class SANDiscriminator(nn.Module):
         w = self.direction().to(h.dtype)
         return SANLogits(hinge=torch.einsum("bct,c->bt", h, w.detach()),
                          direction=torch.einsum("bct,c->bt", h.detach(), w))
+
+
+class LatentDiscriminator(nn.Module):
+    """The SAN discriminator over a denoiser's latents (B, T', parts, latent_dim), conditioned on the
+    prompt: the pooled text feature, projected, is appended to every latent frame, so a slow slash is
+    judged against real slashes rather than against any real motion. config.feature_dim is replaced
+    by the width this input has."""
+
+    def __init__(self, parts: int, latent_dim: int, text_dim: int, config: DiscriminatorConfig | None = None,
+                 text_channels: int = 32):
+        super().__init__()
+        self.text = nn.Linear(text_dim, text_channels)
+        self.san = SANDiscriminator(replace(config or DiscriminatorConfig(),
+                                            feature_dim=parts * latent_dim + text_channels))
+
+    def _valid(self, z: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
+        """The frame mask on whole patches: the frames padded to fill the last one are not judged."""
+        if valid is None:
+            valid = torch.ones(z.shape[:2], dtype=torch.bool, device=z.device)
+        return F.pad(valid, (0, -z.shape[1] % self.san.patch_frames), value=False)
+
+    def _input(self, z: torch.Tensor, pooled: torch.Tensor, valid: torch.Tensor | None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        B, T = z.shape[:2]
+        x = torch.cat((z.flatten(2), self.text(pooled.to(z.dtype))[:, None].expand(B, T, -1)), dim=-1)
+        return F.pad(x, (0, 0, 0, -T % self.san.patch_frames)), self._valid(z, valid)
+
+    def patch_mask(self, z: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
+        return self.san.patch_mask(self._valid(z, valid))
+
+    def forward(self, z: torch.Tensor, pooled: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        return self.san(*self._input(z, pooled, valid))
+
+    def san_logits(self, z: torch.Tensor, pooled: torch.Tensor, valid: torch.Tensor | None = None) -> SANLogits:
+        return self.san.san_logits(*self._input(z, pooled, valid))
 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:

@@ -206,6 +206,12 @@ class ConsistencyTrainConfig:
     # an exported student to start from, of any width (e.g. a d = 128 student for a widened teacher, so
     # that sampling stays fast); empty: the teacher's own architecture and weights
     student: str = ""
+    # an adversarial term (0: off): a SAN discriminator on the latents, given the prompt, tells the
+    # student's clean estimates from the batch's real motions; the student's share of its gradient
+    # is lambda_adv times the consistency loss's, measured on the estimates at every step
+    lambda_adv: float = 0.0
+    # its network (feature_dim is set from the latents and the text projection)
+    discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
 
     def check(self, where: str = "") -> None:
         require(0 <= self.guidance_min <= self.guidance_max, where, "guidance_min",
@@ -220,3 +226,4 @@ class ConsistencyTrainConfig:
             require(getattr(self, name) >= 1, where, name, ">= 1", getattr(self, name))
         require(0 <= self.cfg_rescale <= 1, where, "cfg_rescale", "in [0, 1]", self.cfg_rescale)
         require(0 <= self.cfg_cutoff < 1, where, "cfg_cutoff", "in [0, 1)", self.cfg_cutoff)
+        require(self.lambda_adv >= 0, where, "lambda_adv", ">= 0", self.lambda_adv)

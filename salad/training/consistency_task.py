@@ -13,6 +13,11 @@ and the student's consistency function at the timesteps the 1-4 step sampler vis
 that solution: the consistency function by its definition, with no bootstrap chain to
 propagate. One solve costs about as much as 25 LCD steps' teacher calls, so its states are
 replayed for a few optimiser steps from a small buffer of recent solves.
+
+Regressing a deterministic solve teaches the student the teacher's probability-flow ODE, whose
+motions are tamer than those of the stochastic sampler the studio uses (slower slashes, lower
+kicks). With lambda_adv > 0 a discriminator conditioned on the prompt also judges the student's
+clean estimates against the real latents of the same batch, and the student is pushed towards them.
 """
 from __future__ import annotations
 
@@ -24,6 +29,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+from torch.func import functional_call
 
 from ..checkpoint import CheckpointError, load_state_strict
 from ..config import from_dict, to_dict, validate
@@ -31,6 +37,7 @@ from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_time
 from ..diffusion.sampling import cfg_combine
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
 from ..models.denoiser import Denoiser
+from ..models.discriminator import LatentDiscriminator, san_discriminator_loss, san_generator_loss
 from ..models.io import (load_consistency_student, load_denoiser, partner_mismatches, save_denoiser,
                          vae_latent_checksums, vae_latent_origin)
 from .configs import CONSISTENCY_TARGETS, ConsistencyTrainConfig, DenoiserTrainConfig
@@ -43,10 +50,14 @@ COND_KEYS = ("text", "text_mask", "frame_mask", "pooled", "auto", "text2", "text
 class ConsistencyTraining(nn.Module):
     def __init__(self, teacher: Denoiser, schedule: NoiseSchedule, target_decay: float, huber_c: float,
                  objective: str = "lcd", teacher_steps: int = 25, replay_buffer: int = 16,
-                 cfg_rescale: float = 0.0, cfg_cutoff: float = 0.0, student: Denoiser | None = None):
+                 cfg_rescale: float = 0.0, cfg_cutoff: float = 0.0, student: Denoiser | None = None,
+                 discriminator: LatentDiscriminator | None = None, lambda_adv: float = 0.0):
         """student: where the student starts (e.g. a narrower one than the teacher, so it stays fast);
-        None: the teacher's architecture and weights with a zero guidance embedding."""
+        None: the teacher's architecture and weights with a zero guidance embedding. discriminator:
+        needed when lambda_adv > 0."""
         super().__init__()
+        if lambda_adv < 0 or (lambda_adv > 0 and discriminator is None):
+            raise ValueError(f"lambda_adv must be >= 0, and a discriminator is needed above 0 (got {lambda_adv})")
         if objective not in CONSISTENCY_TARGETS:
             raise ValueError(f"unknown consistency target {objective!r}; "
                              f"choose one of {', '.join(CONSISTENCY_TARGETS)}")
@@ -74,6 +85,7 @@ class ConsistencyTraining(nn.Module):
         self.solve_timesteps = sorted(set(even) | set(self.points), reverse=True)
         self.replay_buffer = replay_buffer
         self._solves: list[dict] = []      # recent teacher solves; rebuilt after a resume, not saved
+        self.disc, self.lambda_adv = (discriminator, float(lambda_adv)) if lambda_adv > 0 else (None, 0.0)
 
     def train(self, mode: bool = True):
         super().train(mode)
@@ -124,7 +136,29 @@ class ConsistencyTraining(nn.Module):
             zs = self.schedule.add_noise(x0, eps, s)         # the teacher's DDIM step t -> s
             target = consistency_fn(self.schedule, zs, self.target(zs, s, guidance=w, **cond).float(), s)
         loss = self._huber(pred, target, batch["frame_mask"])
-        return loss, {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}
+        logs = {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}
+        return self._with_adversarial(loss, pred, z0, batch, logs)
+
+    def _with_adversarial(self, loss: torch.Tensor, pred: torch.Tensor, real: torch.Tensor, cond: dict,
+                          logs: dict) -> tuple[torch.Tensor, dict]:
+        """loss plus the adversarial terms: the student's, weighted so that its gradient on the clean
+        estimates is lambda_adv times the consistency loss's (VQGAN's adaptive weight: a fixed weight
+        would mean something else as the discriminator sharpens), and the discriminator's own. Each
+        reaches only its player: the discriminator sees the estimates detached, the student sees the
+        discriminator's parameters detached."""
+        if self.disc is None:
+            return loss, logs
+        fm, pooled = cond["frame_mask"], cond["pooled"]
+        mask = self.disc.patch_mask(pred, fm)
+        frozen = {k: v.detach() for k, v in self.disc.named_parameters()}
+        g_adv = san_generator_loss(functional_call(self.disc, frozen, (pred, pooled, fm)), mask)
+        g_rec = torch.autograd.grad(loss, pred, retain_graph=True)[0]
+        g_fake = torch.autograd.grad(g_adv, pred, retain_graph=True)[0]
+        weight = (self.lambda_adv * g_rec.norm() / g_fake.norm().clamp_min(1e-12)).detach()
+        d_loss, d_logs = san_discriminator_loss(self.disc.san_logits(real, pooled, fm),
+                                                self.disc.san_logits(pred.detach(), pooled, fm), mask)
+        logs.update(d_logs, g_adv=float(g_adv.detach()), adv_weight=float(weight))
+        return loss + weight * g_adv + d_loss, logs
 
     @torch.no_grad()
     def solve(self, batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
@@ -143,7 +177,7 @@ class ConsistencyTraining(nn.Module):
     def _trajectory_loss(self, batch: dict):
         if bool(batch["fresh"]) or not self._solves:
             states, x0 = self.solve(batch)
-            entry = {"states": states, "x0": x0, **{k: batch[k] for k in COND_KEYS}}
+            entry = {"states": states, "x0": x0, "real": batch["latents"], **{k: batch[k] for k in COND_KEYS}}
             self._solves = (self._solves + [entry])[-self.replay_buffer:]
         else:
             entry = self._solves[min(int(float(batch["pick"]) * len(self._solves)), len(self._solves) - 1)]
@@ -154,8 +188,9 @@ class ConsistencyTraining(nn.Module):
         pred = consistency_fn(self.schedule, zt,
                               self.student(zt, t, guidance=entry["guidance"], **self._student_cond(entry)).float(), t)
         loss = self._huber(pred, entry["x0"], entry["frame_mask"])
-        return loss, {"loss": float(loss.detach()), "auto": float(entry["auto"].float().mean()),
-                      "solved": float(bool(batch["fresh"]))}
+        logs = {"loss": float(loss.detach()), "auto": float(entry["auto"].float().mean()),
+                "solved": float(bool(batch["fresh"]))}
+        return self._with_adversarial(loss, pred, entry["real"], entry, logs)
 
 
 def _student_for(teacher: Denoiser, teacher_doc_config: dict, path: str, vae_checksums: set[str]) -> Denoiser:
@@ -206,9 +241,14 @@ class ConsistencyTask:
         self.schedule = self.data.schedule
         self.grid = grid_timesteps(self.schedule)
         student = _student_for(teacher, tcfg, cfg.student, vae_latent_checksums(root / "vae")) if cfg.student else None
+        disc = None
+        if cfg.lambda_adv > 0:
+            torch.manual_seed(cfg.run.seed)
+            c = teacher.config
+            disc = LatentDiscriminator(c.parts, c.latent_dim, c.text_dim, cfg.discriminator)
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
                                          cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff,
-                                         student)
+                                         student, disc, cfg.lambda_adv)
         self._drawn = 0
 
     def _replayed(self, rng: np.random.Generator) -> dict | None:
