@@ -221,14 +221,14 @@ def test_trajectory_distillation_replays_its_solves_and_resumes(tiny_model, tiny
 def test_the_adversarial_term_is_held_at_its_share_of_the_students_gradient(tiny_model):
     """The student's adversarial gradient on its clean estimates is lambda_adv times the consistency
     loss's, whatever the discriminator's scale; the discriminator's own loss reaches only it."""
-    from salad.models.discriminator import DiscriminatorConfig, LatentDiscriminator
+    from salad.models.discriminator import DiscriminatorConfig, PromptDiscriminator
     from salad.models.io import load_denoiser
     from salad.training.consistency_task import ConsistencyTraining
 
     teacher, _ = load_denoiser(tiny_model / "denoiser")
     c = teacher.config
     torch.manual_seed(0)
-    disc = LatentDiscriminator(c.parts, c.latent_dim, c.text_dim, DiscriminatorConfig(width=8, levels=1))
+    disc = PromptDiscriminator(c.parts * c.latent_dim, c.text_dim, DiscriminatorConfig(width=8, levels=1))
     m = ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "trajectory",
                             teacher_steps=6, discriminator=disc, lambda_adv=0.25)
     g = torch.Generator().manual_seed(0)
@@ -254,18 +254,24 @@ def test_the_adversarial_term_is_held_at_its_share_of_the_students_gradient(tiny
         ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, lambda_adv=0.5)
 
 
-def test_adversarial_distillation_trains_and_resumes(tiny_model, tiny_dataset, tmp_path):
+@pytest.mark.parametrize("space", ["latents", "motion"])
+def test_adversarial_distillation_trains_and_resumes(tiny_model, tiny_dataset, tmp_path, space):
     from salad.checkpoint import load_checkpoint
     from salad.cli import main
 
     run = tmp_path / "run"
-    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\n'
+    extra = (f'target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nadversarial_space = "{space}"\n'
              '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
     cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=3, extra=extra)
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
     _, parts = load_checkpoint(run / "state")
     first = {k: v.clone() for k, v in parts["model"].items() if k.startswith("disc.")}
     assert first and any(k.startswith("disc.text.") for k in first)
+    # the discriminator reads 263-d decoded frames or the latents, plus the prompt's 32 channels
+    from salad.models.io import load_denoiser
+    c = load_denoiser(tiny_model / "denoiser")[0].config
+    width = parts["model"]["disc.san.features.0.weight"].shape[1] - 32
+    assert width == (263 if space == "motion" else c.parts * c.latent_dim)
     consistency_toml(cfg, tiny_dataset, tiny_model, steps=5, extra=extra)
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
     rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
@@ -285,7 +291,8 @@ def test_distillation_config_errors_are_clear(tiny_model, tiny_dataset, tmp_path
     for extra, message in (('target = "progressive"', "target must be one of lcd, trajectory"),
                            ("replay = 0", "replay must be >= 1"),
                            ("cfg_cutoff = 1.0", "cfg_cutoff must be in [0, 1)"),
-                           ("lambda_adv = -0.1", "lambda_adv must be >= 0")):
+                           ("lambda_adv = -0.1", "lambda_adv must be >= 0"),
+                           ('adversarial_space = "pixels"', "adversarial_space must be latents or motion")):
         cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra)
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
         assert message in capsys.readouterr().err

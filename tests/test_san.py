@@ -8,7 +8,7 @@ import torch
 
 from salad.checkpoint import CheckpointError
 from salad.config import ConfigError
-from salad.models.discriminator import (DiscriminatorConfig, LatentDiscriminator, SANDiscriminator,
+from salad.models.discriminator import (DiscriminatorConfig, PromptDiscriminator, SANDiscriminator,
                                         san_discriminator_loss, san_generator_loss)
 from salad.models.io import load_vae, save_vae, vae_checksum, vae_latent_checksums, vae_latent_sources
 from salad.pipeline import load_pipeline
@@ -19,11 +19,11 @@ from salad.training.vae_adv_task import VAESANTask, encoder_state
 SMALL = DiscriminatorConfig(width=16, levels=2, blocks_per_level=1)
 
 
-def test_the_latent_discriminator_judges_frames_given_the_prompt():
+def test_the_prompt_discriminator_judges_frames_given_the_prompt():
     """Any latent length (padded to whole patches), frames past a motion's end not judged, and the
     prompt changes the verdict on the same motion."""
     torch.manual_seed(0)
-    d = LatentDiscriminator(parts=7, latent_dim=4, text_dim=12, config=SMALL)
+    d = PromptDiscriminator(frame_dim=28, text_dim=12, config=SMALL)
     z, pooled = torch.randn(2, 11, 7, 4), torch.randn(2, 12)
     valid = torch.arange(11)[None] < torch.tensor([[11], [6]])
     logits = d(z, pooled, valid)

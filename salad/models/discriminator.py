@@ -104,18 +104,17 @@ class SANDiscriminator(nn.Module):
                          direction=torch.einsum("bct,c->bt", h.detach(), w))
 
 
-class LatentDiscriminator(nn.Module):
-    """The SAN discriminator over a denoiser's latents (B, T', parts, latent_dim), conditioned on the
-    prompt: the pooled text feature, projected, is appended to every latent frame, so a slow slash is
-    judged against real slashes rather than against any real motion. config.feature_dim is replaced
-    by the width this input has."""
+class PromptDiscriminator(nn.Module):
+    """The SAN discriminator given the prompt, over frames (B, T, ...) of any per-frame shape (a
+    denoiser's latents (B, T', parts, latent_dim), decoded features (B, T, 263)): the pooled text
+    feature, projected, is appended to every frame, so a slow slash is judged against real slashes
+    rather than against any real motion. config.feature_dim is replaced by this input's width."""
 
-    def __init__(self, parts: int, latent_dim: int, text_dim: int, config: DiscriminatorConfig | None = None,
+    def __init__(self, frame_dim: int, text_dim: int, config: DiscriminatorConfig | None = None,
                  text_channels: int = 32):
         super().__init__()
         self.text = nn.Linear(text_dim, text_channels)
-        self.san = SANDiscriminator(replace(config or DiscriminatorConfig(),
-                                            feature_dim=parts * latent_dim + text_channels))
+        self.san = SANDiscriminator(replace(config or DiscriminatorConfig(), feature_dim=frame_dim + text_channels))
 
     def _valid(self, z: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
         """The frame mask on whole patches: the frames padded to fill the last one are not judged."""

@@ -210,7 +210,9 @@ class ConsistencyTrainConfig:
     # student's clean estimates from the batch's real motions; the student's share of its gradient
     # is lambda_adv times the consistency loss's, measured on the estimates at every step
     lambda_adv: float = 0.0
-    # its network (feature_dim is set from the latents and the text projection)
+    # what the discriminator judges: "latents", or "motion" (both sides decoded by the teacher's VAE)
+    adversarial_space: str = "latents"
+    # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
 
     def check(self, where: str = "") -> None:
@@ -227,3 +229,5 @@ class ConsistencyTrainConfig:
         require(0 <= self.cfg_rescale <= 1, where, "cfg_rescale", "in [0, 1]", self.cfg_rescale)
         require(0 <= self.cfg_cutoff < 1, where, "cfg_cutoff", "in [0, 1)", self.cfg_cutoff)
         require(self.lambda_adv >= 0, where, "lambda_adv", ">= 0", self.lambda_adv)
+        require(self.adversarial_space in ("latents", "motion"), where, "adversarial_space",
+                "latents or motion", self.adversarial_space)

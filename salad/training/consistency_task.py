@@ -17,7 +17,9 @@ replayed for a few optimiser steps from a small buffer of recent solves.
 Regressing a deterministic solve teaches the student the teacher's probability-flow ODE, whose
 motions are tamer than those of the stochastic sampler the studio uses (slower slashes, lower
 kicks). With lambda_adv > 0 a discriminator conditioned on the prompt also judges the student's
-clean estimates against the real latents of the same batch, and the student is pushed towards them.
+clean estimates against the real latents of the same batch (or both decoded by the frozen VAE, with
+adversarial_space = "motion", where the root's velocity is a channel of its own), and the student
+is pushed towards them.
 """
 from __future__ import annotations
 
@@ -37,9 +39,10 @@ from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_time
 from ..diffusion.sampling import cfg_combine
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
 from ..models.denoiser import Denoiser
-from ..models.discriminator import LatentDiscriminator, san_discriminator_loss, san_generator_loss
+from ..models.discriminator import PromptDiscriminator, san_discriminator_loss, san_generator_loss
 from ..models.io import (load_consistency_student, load_denoiser, partner_mismatches, save_denoiser,
                          vae_latent_checksums, vae_latent_origin)
+from ..models.vae import MotionVAE
 from .configs import CONSISTENCY_TARGETS, ConsistencyTrainConfig, DenoiserTrainConfig
 from .denoiser_task import DenoiserTask
 
@@ -51,10 +54,12 @@ class ConsistencyTraining(nn.Module):
     def __init__(self, teacher: Denoiser, schedule: NoiseSchedule, target_decay: float, huber_c: float,
                  objective: str = "lcd", teacher_steps: int = 25, replay_buffer: int = 16,
                  cfg_rescale: float = 0.0, cfg_cutoff: float = 0.0, student: Denoiser | None = None,
-                 discriminator: LatentDiscriminator | None = None, lambda_adv: float = 0.0):
+                 discriminator: PromptDiscriminator | None = None, lambda_adv: float = 0.0,
+                 decoder: MotionVAE | None = None, latent_scale: float = 1.0):
         """student: where the student starts (e.g. a narrower one than the teacher, so it stays fast);
         None: the teacher's architecture and weights with a zero guidance embedding. discriminator:
-        needed when lambda_adv > 0."""
+        needed when lambda_adv > 0; decoder (the frozen VAE, its latents scaled by latent_scale for
+        the denoiser): the discriminator judges decoded motion instead of latents."""
         super().__init__()
         if lambda_adv < 0 or (lambda_adv > 0 and discriminator is None):
             raise ValueError(f"lambda_adv must be >= 0, and a discriminator is needed above 0 (got {lambda_adv})")
@@ -86,11 +91,15 @@ class ConsistencyTraining(nn.Module):
         self.replay_buffer = replay_buffer
         self._solves: list[dict] = []      # recent teacher solves; rebuilt after a resume, not saved
         self.disc, self.lambda_adv = (discriminator, float(lambda_adv)) if lambda_adv > 0 else (None, 0.0)
+        self.decoder = decoder.requires_grad_(False) if decoder is not None and self.disc is not None else None
+        self.latent_scale = latent_scale
 
     def train(self, mode: bool = True):
         super().train(mode)
         self.teacher.eval()      # dropout off: they give targets, not gradients
         self.target.eval()
+        if self.decoder is not None:
+            self.decoder.eval()
         return self
 
     @torch.no_grad()
@@ -149,14 +158,18 @@ class ConsistencyTraining(nn.Module):
         if self.disc is None:
             return loss, logs
         fm, pooled = cond["frame_mask"], cond["pooled"]
-        mask = self.disc.patch_mask(pred, fm)
+        judged = pred
+        if self.decoder is not None:
+            judged, real = (self.decoder.decode(z / self.latent_scale)[0] for z in (pred, real))
+            fm = None if fm is None else fm.repeat_interleave(judged.shape[1] // fm.shape[1], dim=1)
+        mask = self.disc.patch_mask(judged, fm)
         frozen = {k: v.detach() for k, v in self.disc.named_parameters()}
-        g_adv = san_generator_loss(functional_call(self.disc, frozen, (pred, pooled, fm)), mask)
+        g_adv = san_generator_loss(functional_call(self.disc, frozen, (judged, pooled, fm)), mask)
         g_rec = torch.autograd.grad(loss, pred, retain_graph=True)[0]
         g_fake = torch.autograd.grad(g_adv, pred, retain_graph=True)[0]
         weight = (self.lambda_adv * g_rec.norm() / g_fake.norm().clamp_min(1e-12)).detach()
-        d_loss, d_logs = san_discriminator_loss(self.disc.san_logits(real, pooled, fm),
-                                                self.disc.san_logits(pred.detach(), pooled, fm), mask)
+        d_loss, d_logs = san_discriminator_loss(self.disc.san_logits(real.detach(), pooled, fm),
+                                                self.disc.san_logits(judged.detach(), pooled, fm), mask)
         logs.update(d_logs, g_adv=float(g_adv.detach()), adv_weight=float(weight))
         return loss + weight * g_adv + d_loss, logs
 
@@ -241,14 +254,20 @@ class ConsistencyTask:
         self.schedule = self.data.schedule
         self.grid = grid_timesteps(self.schedule)
         student = _student_for(teacher, tcfg, cfg.student, vae_latent_checksums(root / "vae")) if cfg.student else None
-        disc = None
+        disc, decoder = None, None
         if cfg.lambda_adv > 0:
             torch.manual_seed(cfg.run.seed)
             c = teacher.config
-            disc = LatentDiscriminator(c.parts, c.latent_dim, c.text_dim, cfg.discriminator)
+            if cfg.adversarial_space == "motion":
+                # a copy: the data's VAE encodes batches where they are made, this one decodes on the model's device
+                decoder = copy.deepcopy(self.data.vae)
+                frame_dim = self.data.normalizer.dim
+            else:
+                frame_dim = c.parts * c.latent_dim
+            disc = PromptDiscriminator(frame_dim, c.text_dim, cfg.discriminator)
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
                                          cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff,
-                                         student, disc, cfg.lambda_adv)
+                                         student, disc, cfg.lambda_adv, decoder, self.data.latent_scale)
         self._drawn = 0
 
     def _replayed(self, rng: np.random.Generator) -> dict | None:
