@@ -206,9 +206,9 @@ class ConsistencyTrainConfig:
     # an exported student to start from, of any width (e.g. a d = 128 student for a widened teacher, so
     # that sampling stays fast); empty: the teacher's own architecture and weights
     student: str = ""
-    # an adversarial term (0: off): a SAN discriminator on the latents, given the prompt, tells the
-    # student's clean estimates from the batch's real motions; the student's share of its gradient
-    # is lambda_adv times the consistency loss's, measured on the estimates at every step
+    # an adversarial term (0: off): a SAN discriminator, given the prompt, tells the student's clean
+    # estimates from the batch's real motions; the student's share of its gradient is lambda_adv
+    # times the consistency loss's, measured on the estimates at every step
     lambda_adv: float = 0.0
     # what the discriminator judges: "latents", or "motion" (both sides decoded by the teacher's VAE)
     adversarial_space: str = "latents"
