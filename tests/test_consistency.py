@@ -254,13 +254,57 @@ def test_the_adversarial_term_is_held_at_its_share_of_the_students_gradient(tiny
         ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, lambda_adv=0.5)
 
 
-@pytest.mark.parametrize("space", ["latents", "motion"])
-def test_adversarial_distillation_trains_and_resumes(tiny_model, tiny_dataset, tmp_path, space):
+def test_the_teachers_stochastic_samples_can_be_the_discriminators_real_side(tiny_model):
+    """adversarial_real = "teacher": the real side of a solved batch is the teacher sampled as the
+    studio samples it (SDE-DPM-Solver++, guided at the row's scale, rescaled and cut off alike), from
+    fresh noise, not the batch's captures nor the deterministic solve."""
+    from salad.diffusion.sampling import fresh_noise, sample
+    from salad.models.discriminator import DiscriminatorConfig, PromptDiscriminator
+    from salad.models.io import load_denoiser
+    from salad.training.consistency_task import ConsistencyTraining
+
+    teacher, _ = load_denoiser(tiny_model / "denoiser")
+    c = teacher.config
+    disc = PromptDiscriminator(c.parts * c.latent_dim, c.text_dim, DiscriminatorConfig(width=8, levels=1))
+    m = ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "trajectory",
+                            teacher_steps=8, cfg_rescale=0.7, cfg_cutoff=0.3, discriminator=disc, lambda_adv=0.3,
+                            adversarial_real="teacher").eval()
+    g = torch.Generator().manual_seed(2)
+    D = c.text_dim
+    text = torch.randn(1, 4, D, generator=g)
+    batch = {"noise": torch.randn(1, 5, c.parts, c.latent_dim, generator=g),
+             "latents": torch.randn(1, 5, c.parts, c.latent_dim, generator=g),
+             "guidance": torch.tensor([4.0]), "frame_mask": None, "auto": torch.zeros(1, dtype=torch.bool),
+             "text2": torch.cat((torch.zeros(1, 4, D), text)),
+             "text_mask2": torch.cat((torch.zeros(1, 4, dtype=torch.bool), torch.ones(1, 4, dtype=torch.bool))),
+             "pooled2": torch.cat((torch.zeros(1, D), torch.randn(1, D, generator=g)))}
+
+    def model(x2, t2):
+        return teacher(x2, t2, batch["text2"], batch["text_mask2"], None, pooled_text=batch["pooled2"],
+                       auto_length=torch.zeros(2, dtype=torch.bool))
+
+    studio = torch.Generator().manual_seed(5)
+    want = sample(model, fresh_noise(batch["noise"], studio), m.schedule, "dpm-sde", 8, cfg_scale=4.0,
+                  cfg_rescale=0.7, cfg_cutoff=0.3, generator=studio)
+    m._sde_noise.manual_seed(5)
+    real = m._real_for(batch)
+    torch.testing.assert_close(real, want, atol=1e-4, rtol=1e-4)
+    _, solved = m.solve(batch)
+    assert not torch.allclose(real, solved, atol=1e-2) and not torch.allclose(real, batch["latents"], atol=1e-2)
+    assert not torch.allclose(m._real_for(batch), real, atol=1e-2)       # fresh noise each solve
+    with pytest.raises(ValueError, match="trajectory"):
+        ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "lcd",
+                            discriminator=disc, lambda_adv=0.3, adversarial_real="teacher")
+
+
+@pytest.mark.parametrize("space, real", [("latents", "data"), ("motion", "teacher")])
+def test_adversarial_distillation_trains_and_resumes(tiny_model, tiny_dataset, tmp_path, space, real):
     from salad.checkpoint import load_checkpoint
     from salad.cli import main
 
     run = tmp_path / "run"
     extra = (f'target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nadversarial_space = "{space}"\n'
+             f'adversarial_real = "{real}"\n'
              '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
     cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=3, extra=extra)
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
@@ -292,7 +336,9 @@ def test_distillation_config_errors_are_clear(tiny_model, tiny_dataset, tmp_path
                            ("replay = 0", "replay must be >= 1"),
                            ("cfg_cutoff = 1.0", "cfg_cutoff must be in [0, 1)"),
                            ("lambda_adv = -0.1", "lambda_adv must be >= 0"),
-                           ('adversarial_space = "pixels"', "adversarial_space must be latents or motion")):
+                           ('adversarial_space = "pixels"', "adversarial_space must be latents or motion"),
+                           ('adversarial_real = "teacher"', 'adversarial_real must be "data" with target = "lcd"'),
+                           ('adversarial_real = "studio"', "adversarial_real must be one of data, teacher")):
         cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra)
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
         assert message in capsys.readouterr().err

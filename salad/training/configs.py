@@ -173,6 +173,7 @@ class VAESANTrainConfig:
 
 # what a consistency student is taught to match (ConsistencyTrainConfig.target)
 CONSISTENCY_TARGETS = ("lcd", "trajectory")
+ADVERSARIAL_REAL = ("data", "teacher")
 
 
 @dataclass
@@ -212,6 +213,10 @@ class ConsistencyTrainConfig:
     lambda_adv: float = 0.0
     # what the discriminator judges: "latents", or "motion" (both sides decoded by the teacher's VAE)
     adversarial_space: str = "latents"
+    # what it takes as real: "data", the batch's own captures, or "teacher", the teacher's stochastic
+    # samples (SDE-DPM-Solver++ on teacher_steps) of the batch's prompts (trajectory target only; one
+    # more teacher sampling per solve)
+    adversarial_real: str = "data"
     # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
 
@@ -231,3 +236,7 @@ class ConsistencyTrainConfig:
         require(self.lambda_adv >= 0, where, "lambda_adv", ">= 0", self.lambda_adv)
         require(self.adversarial_space in ("latents", "motion"), where, "adversarial_space",
                 "latents or motion", self.adversarial_space)
+        require(self.adversarial_real in ADVERSARIAL_REAL, where, "adversarial_real",
+                f"one of {', '.join(ADVERSARIAL_REAL)}", self.adversarial_real)
+        require(self.adversarial_real == "data" or self.target == "trajectory", where, "adversarial_real",
+                '"data" with target = "lcd" (the teacher\'s samples come with its solves)', self.adversarial_real)

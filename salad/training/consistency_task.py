@@ -17,9 +17,10 @@ replayed for a few optimiser steps from a small buffer of recent solves.
 Regressing a deterministic solve teaches the student the teacher's probability-flow ODE, whose
 motions are tamer than those of the stochastic sampler the studio uses (slower slashes, lower
 kicks). With lambda_adv > 0 a discriminator conditioned on the prompt also judges the student's
-clean estimates against the real latents of the same batch (or both decoded by the frozen VAE, with
-adversarial_space = "motion", where the root's velocity is a channel of its own), and the student
-is pushed towards them.
+clean estimates against the real latents of the same batch (or, with adversarial_real = "teacher",
+the teacher's own stochastic samples of the same prompts and lengths), or both decoded by the frozen
+VAE with adversarial_space = "motion", where the root's velocity is a channel of its own; the
+student is pushed towards them.
 """
 from __future__ import annotations
 
@@ -36,14 +37,14 @@ from torch.func import functional_call
 from ..checkpoint import CheckpointError, load_state_strict
 from ..config import from_dict, to_dict, validate
 from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_timesteps
-from ..diffusion.sampling import cfg_combine
+from ..diffusion.sampling import cfg_combine, fresh_noise
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
 from ..models.denoiser import Denoiser
 from ..models.discriminator import PromptDiscriminator, san_discriminator_loss, san_generator_loss
 from ..models.io import (load_consistency_student, load_denoiser, partner_mismatches, save_denoiser,
                          vae_latent_checksums, vae_latent_origin)
 from ..models.vae import MotionVAE
-from .configs import CONSISTENCY_TARGETS, ConsistencyTrainConfig, DenoiserTrainConfig
+from .configs import ADVERSARIAL_REAL, CONSISTENCY_TARGETS, ConsistencyTrainConfig, DenoiserTrainConfig
 from .denoiser_task import DenoiserTask
 
 
@@ -55,14 +56,19 @@ class ConsistencyTraining(nn.Module):
                  objective: str = "lcd", teacher_steps: int = 25, replay_buffer: int = 16,
                  cfg_rescale: float = 0.0, cfg_cutoff: float = 0.0, student: Denoiser | None = None,
                  discriminator: PromptDiscriminator | None = None, lambda_adv: float = 0.0,
-                 decoder: MotionVAE | None = None, latent_scale: float = 1.0):
+                 decoder: MotionVAE | None = None, latent_scale: float = 1.0, adversarial_real: str = "data"):
         """student: where the student starts (e.g. a narrower one than the teacher, so it stays fast);
         None: the teacher's architecture and weights with a zero guidance embedding. discriminator:
         needed when lambda_adv > 0; decoder (the frozen VAE, its latents scaled by latent_scale for
-        the denoiser): the discriminator judges decoded motion instead of latents."""
+        the denoiser): the discriminator judges decoded motion instead of latents. adversarial_real:
+        what the discriminator takes as real, the batch's latents ("data") or the teacher's stochastic
+        samples of its prompts ("teacher"; trajectory objective only)."""
         super().__init__()
         if lambda_adv < 0 or (lambda_adv > 0 and discriminator is None):
             raise ValueError(f"lambda_adv must be >= 0, and a discriminator is needed above 0 (got {lambda_adv})")
+        if adversarial_real not in ADVERSARIAL_REAL or (adversarial_real == "teacher" and objective != "trajectory"):
+            raise ValueError(f"adversarial_real must be one of {', '.join(ADVERSARIAL_REAL)}, and \"teacher\" "
+                             f"needs the trajectory objective (got {adversarial_real!r} with {objective!r})")
         if objective not in CONSISTENCY_TARGETS:
             raise ValueError(f"unknown consistency target {objective!r}; "
                              f"choose one of {', '.join(CONSISTENCY_TARGETS)}")
@@ -88,11 +94,14 @@ class ConsistencyTraining(nn.Module):
         self.points = sampler_timesteps(schedule)
         even = [int(t) for t in schedule.sampler("dpm", teacher_steps).timesteps]
         self.solve_timesteps = sorted(set(even) | set(self.points), reverse=True)
+        self.teacher_steps = teacher_steps
         self.replay_buffer = replay_buffer
         self._solves: list[dict] = []      # recent teacher solves; rebuilt after a resume, not saved
         self.disc, self.lambda_adv = (discriminator, float(lambda_adv)) if lambda_adv > 0 else (None, 0.0)
         self.decoder = decoder.requires_grad_(False) if decoder is not None and self.disc is not None else None
         self.latent_scale = latent_scale
+        self.adversarial_real = adversarial_real
+        self._sde_noise = torch.Generator().manual_seed(0)   # the teacher's stochastic samples; not resumed
 
     def train(self, mode: bool = True):
         super().train(mode)
@@ -146,22 +155,27 @@ class ConsistencyTraining(nn.Module):
             target = consistency_fn(self.schedule, zs, self.target(zs, s, guidance=w, **cond).float(), s)
         loss = self._huber(pred, target, batch["frame_mask"])
         logs = {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}
-        return self._with_adversarial(loss, pred, z0, batch, logs)
+        with torch.no_grad():
+            real = self._judged(z0) if self.disc is not None else None
+        return self._with_adversarial(loss, pred, real, batch, logs)
 
-    def _with_adversarial(self, loss: torch.Tensor, pred: torch.Tensor, real: torch.Tensor, cond: dict,
+    def _judged(self, z: torch.Tensor) -> torch.Tensor:
+        """What the discriminator sees of latents z: themselves, or the motion they decode to."""
+        return z if self.decoder is None else self.decoder.decode(z / self.latent_scale)[0]
+
+    def _with_adversarial(self, loss: torch.Tensor, pred: torch.Tensor, real: torch.Tensor | None, cond: dict,
                           logs: dict) -> tuple[torch.Tensor, dict]:
         """loss plus the adversarial terms: the student's, weighted so that its gradient on the clean
         estimates is lambda_adv times the consistency loss's (VQGAN's adaptive weight: a fixed weight
         would mean something else as the discriminator sharpens), and the discriminator's own. Each
         reaches only its player: the discriminator sees the estimates detached, the student sees the
-        discriminator's parameters detached."""
+        discriminator's parameters detached. real is already as the discriminator sees it (_judged)."""
         if self.disc is None:
             return loss, logs
         fm, pooled = cond["frame_mask"], cond["pooled"]
-        judged = pred
-        if self.decoder is not None:
-            judged, real = (self.decoder.decode(z / self.latent_scale)[0] for z in (pred, real))
-            fm = None if fm is None else fm.repeat_interleave(judged.shape[1] // fm.shape[1], dim=1)
+        judged = self._judged(pred)
+        if fm is not None and judged.shape[1] != fm.shape[1]:
+            fm = fm.repeat_interleave(judged.shape[1] // fm.shape[1], dim=1)
         mask = self.disc.patch_mask(judged, fm)
         frozen = {k: v.detach() for k, v in self.disc.named_parameters()}
         g_adv = san_generator_loss(functional_call(self.disc, frozen, (judged, pooled, fm)), mask)
@@ -187,10 +201,30 @@ class ConsistencyTraining(nn.Module):
             x = sched.step(self._guided(x, tt, batch), t, x).prev_sample
         return torch.stack([states[t] for t in self.points]), x
 
+    @torch.no_grad()
+    def sample_stochastic(self, batch: dict) -> torch.Tensor:
+        """The teacher's clean latents for the batch's prompts, lengths and guidance scales from fresh
+        noise by SDE-DPM-Solver++, guided as in solve: the livelier motions of the studio's sampler."""
+        sched = self.schedule.sampler("dpm-sde", self.teacher_steps)
+        x = fresh_noise(batch["noise"], self._sde_noise)
+        for t in sched.timesteps:
+            tt = torch.full((x.shape[0],), int(t), dtype=torch.long, device=x.device)
+            x = sched.step(self._guided(x, tt, batch), t, x, variance_noise=fresh_noise(x, self._sde_noise)).prev_sample
+        return x
+
+    def _real_for(self, batch: dict) -> torch.Tensor | None:
+        """The discriminator's real side for a freshly solved batch, as it judges it; decoded once
+        here, since every replay of the solve reuses it."""
+        if self.disc is None:
+            return None
+        real = self.sample_stochastic(batch) if self.adversarial_real == "teacher" else batch["latents"]
+        with torch.no_grad():
+            return self._judged(real)
+
     def _trajectory_loss(self, batch: dict):
         if bool(batch["fresh"]) or not self._solves:
             states, x0 = self.solve(batch)
-            entry = {"states": states, "x0": x0, "real": batch["latents"], **{k: batch[k] for k in COND_KEYS}}
+            entry = {"states": states, "x0": x0, "real": self._real_for(batch), **{k: batch[k] for k in COND_KEYS}}
             self._solves = (self._solves + [entry])[-self.replay_buffer:]
         else:
             entry = self._solves[min(int(float(batch["pick"]) * len(self._solves)), len(self._solves) - 1)]
@@ -267,7 +301,8 @@ class ConsistencyTask:
             disc = PromptDiscriminator(frame_dim, c.text_dim, cfg.discriminator)
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
                                          cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff,
-                                         student, disc, cfg.lambda_adv, decoder, self.data.latent_scale)
+                                         student, disc, cfg.lambda_adv, decoder, self.data.latent_scale,
+                                         cfg.adversarial_real)
         self._drawn = 0
 
     def _replayed(self, rng: np.random.Generator) -> dict | None:
