@@ -155,9 +155,7 @@ class ConsistencyTraining(nn.Module):
             target = consistency_fn(self.schedule, zs, self.target(zs, s, guidance=w, **cond).float(), s)
         loss = self._huber(pred, target, batch["frame_mask"])
         logs = {"loss": float(loss.detach()), "auto": float(batch["auto"].float().mean())}
-        with torch.no_grad():
-            real = self._judged(z0) if self.disc is not None else None
-        return self._with_adversarial(loss, pred, real, batch, logs)
+        return self._with_adversarial(loss, pred, self._real_for(batch), batch, logs)
 
     def _judged(self, z: torch.Tensor) -> torch.Tensor:
         """What the discriminator sees of latents z: themselves, or the motion they decode to."""
@@ -212,14 +210,14 @@ class ConsistencyTraining(nn.Module):
             x = sched.step(self._guided(x, tt, batch), t, x, variance_noise=fresh_noise(x, self._sde_noise)).prev_sample
         return x
 
+    @torch.no_grad()
     def _real_for(self, batch: dict) -> torch.Tensor | None:
-        """The discriminator's real side for a freshly solved batch, as it judges it; decoded once
-        here, since every replay of the solve reuses it."""
+        """The discriminator's real side for a batch, as it judges it (None without one). For a
+        solve it is stored with the solve, so every replay reuses it rather than decoding it again."""
         if self.disc is None:
             return None
         real = self.sample_stochastic(batch) if self.adversarial_real == "teacher" else batch["latents"]
-        with torch.no_grad():
-            return self._judged(real)
+        return self._judged(real)
 
     def _trajectory_loss(self, batch: dict):
         if bool(batch["fresh"]) or not self._solves:
