@@ -146,7 +146,10 @@ def load_checkpoint(path: str | Path, kind: str | None = None, verify: bool = Tr
 
 
 def load_state_strict(module: torch.nn.Module, state: dict[str, torch.Tensor], where: str) -> None:
-    """load_state_dict with an error that names the checkpoint and the mismatch."""
+    """load_state_dict with an error that names the checkpoint and the mismatch. A module with an
+    upgrade_state(state) method is first given the state to bring it to its current layout."""
+    if hasattr(module, "upgrade_state"):
+        state = module.upgrade_state(state)
     own = module.state_dict()
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))

@@ -1,3 +1,4 @@
+import json
 import os
 import shutil
 import socket
@@ -324,3 +325,20 @@ def bandai_subset(shared_data, tmp_path_factory) -> Path:
                 wanted.discard(rel)
     assert not wanted, f"archive lacks {sorted(wanted)}"
     return out
+
+
+def labelled_copy(tiny_dataset, where: Path, kicks: int) -> Path:
+    """tiny_dataset with labels.json: its first `kicks` training motions re-captioned as kicks."""
+    from salad.data.captions import caption_line
+
+    root = where / "labelled"
+    shutil.copytree(tiny_dataset, root)
+    names = (root / "train.txt").read_text().split()
+    labels = {}
+    for i, name in enumerate(names):
+        content = "kick" if i < kicks else "walk"
+        labels[name] = {"content": content, "style": "normal", "mirrored": False, "split": "train"}
+        if content == "kick":
+            (root / "texts" / f"{name}.txt").write_text(caption_line("a person kicks") + "\n")
+    (root / "labels.json").write_text(json.dumps(labels))
+    return root

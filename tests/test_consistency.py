@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from salad.diffusion.consistency import consistency_fn, consistency_sample, grid_timesteps
-from conftest import consistency_toml, denoiser_toml
+from conftest import consistency_toml, denoiser_toml, labelled_copy
 from salad.diffusion.schedule import DiffusionConfig, NoiseSchedule
 
 
@@ -95,6 +95,30 @@ def test_a_fresh_student_is_its_teacher_without_guidance(tiny_model):
         m.student(z, t, text)
     assert not any(p.requires_grad for p in m.teacher.parameters())
     assert not any(p.requires_grad for p in m.target.parameters())
+
+
+def test_the_training_state_leaves_out_the_frozen_teacher_and_takes_older_states(tiny_model):
+    """The teacher is loaded from its directory at every start, so a training state does not carry
+    its weights; a state saved when it did still loads. Moving the module moves the teacher too."""
+    from salad.checkpoint import load_state_strict
+    from salad.models.io import load_denoiser
+    from salad.training.consistency_task import ConsistencyTraining
+
+    teacher, _ = load_denoiser(tiny_model / "denoiser")
+    m = ConsistencyTraining(teacher, NoiseSchedule(DiffusionConfig()), 0.95, 0.001)
+    state = m.state_dict()
+    assert any(k.startswith("student.") for k in state) and not any(k.startswith("teacher.") for k in state)
+    assert all(p.data_ptr() != q.data_ptr() for p in m.parameters() for q in teacher.parameters())
+    with torch.no_grad():
+        for p in m.student.parameters():
+            p.add_(1.0)
+    old = {**m.state_dict(), **{f"teacher.{k}": v for k, v in teacher.state_dict().items()}}
+    fresh = ConsistencyTraining(load_denoiser(tiny_model / "denoiser")[0], NoiseSchedule(DiffusionConfig()), 0.95, 0.001)
+    load_state_strict(fresh, old, "an older state")
+    for k, v in m.student.state_dict().items():
+        assert torch.equal(fresh.student.state_dict()[k], v)
+    m.to(torch.float64)
+    assert next(m.teacher.parameters()).dtype == torch.float64
 
 
 def test_distillation_trains_resumes_and_exports_with_its_teacher(tiny_student, tiny_model, tiny_dataset, tmp_path):
@@ -254,6 +278,71 @@ def test_the_adversarial_term_is_held_at_its_share_of_the_students_gradient(tiny
         ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, lambda_adv=0.5)
 
 
+def test_the_discriminator_can_judge_chosen_rows_alone(tiny_model):
+    """With adversarial_rows, the other rows get no adversarial gradient and their real side does not
+    reach the discriminator; the judged rows' share is lambda_adv of their own consistency gradient."""
+    from salad.models.discriminator import DiscriminatorConfig, PromptDiscriminator
+    from salad.models.io import load_denoiser
+    from salad.training.consistency_task import ConsistencyTraining
+
+    teacher, _ = load_denoiser(tiny_model / "denoiser")
+    c = teacher.config
+    torch.manual_seed(0)
+    disc = PromptDiscriminator(c.parts * c.latent_dim, c.text_dim, DiscriminatorConfig(width=8, levels=1))
+    m = ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "trajectory",
+                            teacher_steps=6, discriminator=disc, lambda_adv=0.5)
+    g = torch.Generator().manual_seed(1)
+    shape = (3, 5, c.parts, c.latent_dim)
+    pred, target, real = (torch.randn(shape, generator=g) for _ in range(3))
+    pred.requires_grad_(True)
+    rows = torch.tensor([True, False, True])
+    cond = {"frame_mask": None, "pooled": torch.randn(3, c.text_dim, generator=g), "adversarial_rows": rows}
+    loss = m._huber(pred, target, None)
+    total, logs = m._with_adversarial(loss, pred, real, cond, {})
+    g_rec, = torch.autograd.grad(loss, pred, retain_graph=True)
+    g_all, = torch.autograd.grad(total, pred, retain_graph=True)
+    extra = g_all - g_rec
+    assert float(extra[1].abs().max()) == 0.0 and float(extra[rows].abs().max()) > 0
+    assert float(extra.norm() / g_rec[rows].norm()) == pytest.approx(0.5, rel=1e-3)
+    assert logs["judged_rows"] == pytest.approx(2 / 3)
+    other = real.clone()
+    other[1] += 5.0
+    again, _ = m._with_adversarial(m._huber(pred, target, None), pred, other, cond, {})
+    torch.testing.assert_close(again, total)
+    cond["adversarial_rows"] = torch.zeros(3, dtype=torch.bool)
+    none, logs = m._with_adversarial(loss, pred, real, cond, {})
+    assert none is loss and logs["judged_rows"] == 0.0
+
+
+def test_distillation_can_judge_the_rare_actions_alone(tiny_model, tiny_dataset, tmp_path, capsys):
+    """adversarial_max_clips marks the rows of content classes with at most that many training clips,
+    replayed solves keep their marks, and a count that splits no class is refused."""
+    from salad.cli import main
+    from salad.config import load_toml
+    from salad.training.configs import ConsistencyTrainConfig
+    from salad.training.consistency_task import ConsistencyTask
+
+    root = labelled_copy(tiny_dataset, tmp_path, kicks=2)          # 2 kicks, 6 walks in train
+    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nadversarial_max_clips = {}\n'
+             '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
+    cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=4, extra=extra.format(2))
+    task = ConsistencyTask(load_toml(ConsistencyTrainConfig, cfg), show_progress=False)
+    kicks = np.array([caps == ["a person kicks"] for caps in task.data.captions])
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        b = task.batch(rng)
+        if "rows" in b:
+            assert b["adversarial_rows"].tolist() == kicks[b["rows"].numpy()].tolist()
+    run = tmp_path / "run"
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
+    logs = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert all(0.0 <= r["judged_rows"] <= 1.0 for r in logs)
+    for clips, words in ((1, "every content class unjudged"), (6, "no content class unjudged")):
+        cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=1, extra=extra.format(clips))
+        assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / f"r{clips}")]) == 2
+        assert f"adversarial_max_clips = {clips} leaves {words}" in capsys.readouterr().err
+
+
 def test_the_teachers_stochastic_samples_can_be_the_discriminators_real_side(tiny_model):
     """adversarial_real = "teacher": the real side of a solved batch is the teacher sampled as the
     studio samples it (SDE-DPM-Solver++, guided at the row's scale, rescaled and cut off alike), from
@@ -309,6 +398,7 @@ def test_adversarial_distillation_trains_and_resumes(tiny_model, tiny_dataset, t
     cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=3, extra=extra)
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
     _, parts = load_checkpoint(run / "state")
+    assert not any(k.startswith(("teacher.", "decoder.")) for k in parts["model"])
     first = {k: v.clone() for k, v in parts["model"].items() if k.startswith("disc.")}
     assert first and any(k.startswith("disc.text.") for k in first)
     # the discriminator reads 263-d decoded frames or the latents, plus the prompt's 32 channels
@@ -338,7 +428,8 @@ def test_distillation_config_errors_are_clear(tiny_model, tiny_dataset, tmp_path
                            ("lambda_adv = -0.1", "lambda_adv must be >= 0"),
                            ('adversarial_space = "pixels"', "adversarial_space must be latents or motion"),
                            ('adversarial_real = "teacher"', 'adversarial_real must be "data" with target = "lcd"'),
-                           ('adversarial_real = "studio"', "adversarial_real must be one of data, teacher")):
+                           ('adversarial_real = "studio"', "adversarial_real must be one of data, teacher"),
+                           ("adversarial_max_clips = -1", "adversarial_max_clips must be >= 0")):
         cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra)
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
         assert message in capsys.readouterr().err

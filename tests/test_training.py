@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import denoiser_toml
+from conftest import denoiser_toml, labelled_copy
 import torch.multiprocessing as mp
 
 from salad.models.io import load_vae
@@ -327,24 +327,6 @@ def test_bf16_runs_train_in_fp32_on_a_cpu_without_native_bf16(tiny_dataset, tmp_
         assert torch.is_autocast_enabled("cpu")
 
 
-def _labelled_copy(tiny_dataset, where: Path, kicks: int) -> Path:
-    """tiny_dataset with labels.json: its first `kicks` training motions re-captioned as kicks."""
-    import shutil
-    from salad.data.captions import caption_line
-
-    root = where / "labelled"
-    shutil.copytree(tiny_dataset, root)
-    names = (root / "train.txt").read_text().split()
-    labels = {}
-    for i, name in enumerate(names):
-        content = "kick" if i < kicks else "walk"
-        labels[name] = {"content": content, "style": "normal", "mirrored": False, "split": "train"}
-        if content == "kick":
-            (root / "texts" / f"{name}.txt").write_text(caption_line("a person kicks") + "\n")
-    (root / "labels.json").write_text(json.dumps(labels))
-    return root
-
-
 def _balance_config(root, tiny_model, out, balance):
     from salad.diffusion.schedule import DiffusionConfig
     from salad.models.denoiser import DenoiserConfig
@@ -362,7 +344,7 @@ def _balance_config(root, tiny_model, out, balance):
 def test_class_balance_draws_rare_actions_as_configured(tiny_model, tiny_dataset, tmp_path, balance):
     from salad.training.denoiser_task import DenoiserTask
 
-    root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)         # 2 kicks, 6 walks in train
+    root = labelled_copy(tiny_dataset, tmp_path, kicks=2)         # 2 kicks, 6 walks in train
     task = DenoiserTask(_balance_config(root, tiny_model, tmp_path / "run", balance), show_progress=False)
     drawn = []
     bank_batch = task.text.batch
@@ -381,7 +363,7 @@ def test_an_anchor_holds_common_actions_while_rare_ones_learn_from_the_data(tiny
     from salad.config import ConfigError
     from salad.training.denoiser_task import DenoiserTask, DenoiserTraining
 
-    root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)         # 2 kicks, 6 walks in train
+    root = labelled_copy(tiny_dataset, tmp_path, kicks=2)         # 2 kicks, 6 walks in train
 
     def task_for(out, anchor="", max_clips=2):
         cfg = _balance_config(root, tiny_model, tmp_path / out, 0.0)
@@ -427,7 +409,7 @@ def test_an_anchor_holds_common_actions_while_rare_ones_learn_from_the_data(tiny
 
 @pytest.mark.parametrize("balance", [1.0, 0.0])
 def test_vae_windows_follow_class_balance_and_length(tiny_dataset, tmp_path, balance):
-    root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)         # 2 kicks, 6 walks in train
+    root = labelled_copy(tiny_dataset, tmp_path, kicks=2)         # 2 kicks, 6 walks in train
     cfg = vae_config(root, tmp_path / "run")
     cfg.data.balance = balance
     task = VAETask(cfg)
@@ -453,7 +435,7 @@ def test_class_balance_needs_labels_and_a_valid_exponent(tiny_model, tiny_datase
 
     with pytest.raises(ConfigError, match="labels"):
         DenoiserTask(_balance_config(tiny_dataset, tiny_model, tmp_path / "a", 0.5), show_progress=False)
-    root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)
+    root = labelled_copy(tiny_dataset, tmp_path, kicks=2)
     for bad in (1.5, -1.5):
         with pytest.raises(ConfigError, match=r"data.balance must be in \[-1, 1\]"):
             DenoiserTask(_balance_config(root, tiny_model, tmp_path / "b", bad), show_progress=False)
@@ -466,7 +448,7 @@ def test_class_balance_needs_labels_and_a_valid_exponent(tiny_model, tiny_datase
 def test_a_run_saved_before_a_config_field_existed_resumes_at_its_default(tiny_model, tiny_dataset, tmp_path):
     from salad.training.denoiser_task import DenoiserTask
 
-    root = _labelled_copy(tiny_dataset, tmp_path, kicks=2)
+    root = labelled_copy(tiny_dataset, tmp_path, kicks=2)
     cfg = _balance_config(root, tiny_model, tmp_path / "run", 1.0)
     Trainer(DenoiserTask(cfg, show_progress=False), cfg.optim, cfg.run).fit()
     saved = tmp_path / "run" / "state" / "config.json"

@@ -217,6 +217,10 @@ class ConsistencyTrainConfig:
     # samples (SDE-DPM-Solver++ on teacher_steps) of the batch's prompts (trajectory target only; one
     # more teacher sampling per solve)
     adversarial_real: str = "data"
+    # which rows it judges: 0, every row; n > 0, only the rows of content classes with at most n training
+    # clips (the rare actions, whose motions the plain student tames most), so the common classes keep
+    # what the consistency loss gives them
+    adversarial_max_clips: int = 0
     # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
 
@@ -240,3 +244,4 @@ class ConsistencyTrainConfig:
                 f"one of {', '.join(ADVERSARIAL_REAL)}", self.adversarial_real)
         require(self.adversarial_real == "data" or self.target == "trajectory", where, "adversarial_real",
                 '"data" with target = "lcd" (the teacher\'s samples come with its solves)', self.adversarial_real)
+        require(self.adversarial_max_clips >= 0, where, "adversarial_max_clips", ">= 0", self.adversarial_max_clips)

@@ -20,7 +20,7 @@ kicks). With lambda_adv > 0 a discriminator conditioned on the prompt also judge
 clean estimates against the real latents of the same batch (or, with adversarial_real = "teacher",
 the teacher's own stochastic samples of the same prompts and lengths), or both decoded by the frozen
 VAE with adversarial_space = "motion", where the root's velocity is a channel of its own; the
-student is pushed towards them.
+student is pushed towards them. adversarial_max_clips > 0 has it judge the rare actions' rows alone.
 """
 from __future__ import annotations
 
@@ -82,7 +82,10 @@ class ConsistencyTraining(nn.Module):
                                       f"unexpected {unexpected})")
         self.student = student
         self.target = copy.deepcopy(self.student).requires_grad_(False)
-        self.teacher = teacher.requires_grad_(False)
+        # The teacher and the decoder come from the teacher's directory at every start, so they are held
+        # outside the registered modules: a training state (~55 MB) would otherwise carry their ~12 MB of
+        # weights at every checkpoint. _apply still moves them with the rest.
+        object.__setattr__(self, "teacher", teacher.requires_grad_(False))
         self.schedule, self.target_decay, self.huber_c = schedule, target_decay, huber_c
         # the teacher's guidance as its sampler applies it (sampling.sample), so that the student
         # learns the teacher's motions as the studio gets them
@@ -98,10 +101,23 @@ class ConsistencyTraining(nn.Module):
         self.replay_buffer = replay_buffer
         self._solves: list[dict] = []      # recent teacher solves; rebuilt after a resume, not saved
         self.disc, self.lambda_adv = (discriminator, float(lambda_adv)) if lambda_adv > 0 else (None, 0.0)
-        self.decoder = decoder.requires_grad_(False) if decoder is not None and self.disc is not None else None
+        object.__setattr__(self, "decoder",
+                           decoder.requires_grad_(False) if decoder is not None and self.disc is not None else None)
         self.latent_scale = latent_scale
         self.adversarial_real = adversarial_real
         self._sde_noise = torch.Generator().manual_seed(0)   # the teacher's stochastic samples; not resumed
+
+    def _apply(self, fn, recurse=True):
+        for frozen in (self.teacher, self.decoder):
+            if frozen is not None:
+                frozen._apply(fn, recurse)
+        return super()._apply(fn, recurse)
+
+    @staticmethod
+    def upgrade_state(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """A training state of an earlier version, which saved the teacher's and the decoder's weights
+        too, as this one saves it."""
+        return {k: v for k, v in state.items() if not k.startswith(("teacher.", "decoder."))}
 
     def train(self, mode: bool = True):
         super().train(mode)
@@ -170,14 +186,23 @@ class ConsistencyTraining(nn.Module):
         discriminator's parameters detached. real is already as the discriminator sees it (_judged)."""
         if self.disc is None:
             return loss, logs
+        rows = cond.get("adversarial_rows")
+        if rows is not None and not bool(rows.any()):
+            return loss, {**logs, "judged_rows": 0.0}
         fm, pooled = cond["frame_mask"], cond["pooled"]
         judged = self._judged(pred)
         if fm is not None and judged.shape[1] != fm.shape[1]:
             fm = fm.repeat_interleave(judged.shape[1] // fm.shape[1], dim=1)
         mask = self.disc.patch_mask(judged, fm)
+        if rows is not None:
+            mask = mask & rows[:, None]
+            logs["judged_rows"] = float(rows.float().mean())
         frozen = {k: v.detach() for k, v in self.disc.named_parameters()}
         g_adv = san_generator_loss(functional_call(self.disc, frozen, (judged, pooled, fm)), mask)
         g_rec = torch.autograd.grad(loss, pred, retain_graph=True)[0]
+        if rows is not None:
+            # the ratio on the judged rows alone: their push is lambda_adv times their own consistency gradient
+            g_rec = g_rec[rows]
         g_fake = torch.autograd.grad(g_adv, pred, retain_graph=True)[0]
         weight = (self.lambda_adv * g_rec.norm() / g_fake.norm().clamp_min(1e-12)).detach()
         d_loss, d_logs = san_discriminator_loss(self.disc.san_logits(real.detach(), pooled, fm),
@@ -222,7 +247,8 @@ class ConsistencyTraining(nn.Module):
     def _trajectory_loss(self, batch: dict):
         if bool(batch["fresh"]) or not self._solves:
             states, x0 = self.solve(batch)
-            entry = {"states": states, "x0": x0, "real": self._real_for(batch), **{k: batch[k] for k in COND_KEYS}}
+            entry = {"states": states, "x0": x0, "real": self._real_for(batch), **{k: batch[k] for k in COND_KEYS},
+                     "adversarial_rows": batch.get("adversarial_rows")}
             self._solves = (self._solves + [entry])[-self.replay_buffer:]
         else:
             entry = self._solves[min(int(float(batch["pick"]) * len(self._solves)), len(self._solves) - 1)]
@@ -297,6 +323,8 @@ class ConsistencyTask:
             else:
                 frame_dim = c.parts * c.latent_dim
             disc = PromptDiscriminator(frame_dim, c.text_dim, cfg.discriminator)
+        self._judged_motions = (self.data.rare_motions(cfg.adversarial_max_clips, "adversarial", "unjudged")
+                                if cfg.lambda_adv > 0 and cfg.adversarial_max_clips > 0 else None)
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
                                          cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff,
                                          student, disc, cfg.lambda_adv, decoder, self.data.latent_scale,
@@ -320,6 +348,8 @@ class ConsistencyTask:
         b = self.data.batch(rng)
         if replay is not None:
             b.update(replay)
+        if self._judged_motions is not None:
+            b["adversarial_rows"] = torch.from_numpy(self._judged_motions[b["rows"].numpy()])
         B = b["latents"].shape[0]
         g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
         b["timesteps"] = self.grid[torch.randint(0, len(self.grid), (B,), generator=g)]

@@ -145,17 +145,24 @@ class DenoiserTask:
     def _load_anchor(self, cfg: DenoiserTrainConfig) -> tuple[Denoiser, np.ndarray]:
         """The frozen anchor (cfg.anchor) and, per training motion, whether it learns from the data
         (its content class has at most anchor_max_clips clips) rather than from the anchor."""
-        if self.content is None:
-            raise ConfigError("anchor holds actions by their content class, and this data has no content labels")
-        _, cls, counts = np.unique(self.content, return_inverse=True, return_counts=True)
-        rare = counts <= cfg.anchor_max_clips
-        if rare.all() or not rare.any():
-            raise ConfigError(f"anchor_max_clips = {cfg.anchor_max_clips} leaves "
-                              f"{'no' if rare.all() else 'every'} content class held to the anchor "
-                              f"(clips per class: {min(counts)}-{max(counts)}); choose a count between")
+        rare = self.rare_motions(cfg.anchor_max_clips, "anchor", "held to the anchor")
         anchor = Denoiser(cfg.model)
         self._load_checked(anchor, Path(cfg.anchor))
-        return anchor.eval().requires_grad_(False), rare[cls]
+        return anchor.eval().requires_grad_(False), rare
+
+    def rare_motions(self, max_clips: int, name: str, other: str) -> np.ndarray:
+        """Per training motion, whether its content class has at most `max_clips` clips; `name` (the
+        setting) and `other` (what the other classes' rows get) word the error where that splits nothing."""
+        if self.content is None and self.bundle is None:
+            self.content = dataset_content(self.dataset)
+        if self.content is None:
+            raise ConfigError(f"{name} picks actions by their content class, and this data has no content labels")
+        _, cls, counts = np.unique(self.content, return_inverse=True, return_counts=True)
+        rare = counts <= max_clips
+        if rare.all() or not rare.any():
+            raise ConfigError(f"{name}_max_clips = {max_clips} leaves {'no' if rare.all() else 'every'} content "
+                              f"class {other} (clips per class: {min(counts)}-{max(counts)}); choose a count between")
+        return rare[cls]
 
     def _from_bundle(self, cfg: DenoiserTrainConfig) -> None:
         """Motions, latents and text features from a latent bundle (salad data bundle) instead
@@ -246,7 +253,7 @@ class DenoiserTask:
             extra = {"features": feats[:, :T], "valid": act[:, :T] > 0.5}
         if self._learn is not None:
             extra["learn"] = torch.from_numpy(self._learn[idx])
-        return {**extra, "latents": latents, "frame_mask": frame_mask, "text": text, "text_mask": text_mask,
+        return {**extra, "rows": torch.from_numpy(idx), "latents": latents, "frame_mask": frame_mask, "text": text, "text_mask": text_mask,
                 "pooled": pooled, "auto": torch.full((B,), auto),
                 "timesteps": torch.randint(0, self.schedule.config.train_steps, (B,), generator=g),
                 "noise": torch.randn(latents.shape, generator=g)}
