@@ -386,13 +386,14 @@ def test_the_teachers_stochastic_samples_can_be_the_discriminators_real_side(tin
                             discriminator=disc, lambda_adv=0.3, adversarial_real="teacher")
 
 
-@pytest.mark.parametrize("space, real", [("latents", "data"), ("motion", "teacher")])
-def test_adversarial_distillation_trains_and_resumes(tiny_model, tiny_dataset, tmp_path, space, real):
+@pytest.mark.parametrize("space, real, target", [("latents", "data", "trajectory"), ("motion", "teacher", "trajectory"),
+                                                 ("motion", "data", "lcd")])
+def test_adversarial_distillation_trains_and_resumes(tiny_model, tiny_dataset, tmp_path, space, real, target):
     from salad.checkpoint import load_checkpoint
     from salad.cli import main
 
     run = tmp_path / "run"
-    extra = (f'target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nadversarial_space = "{space}"\n'
+    extra = (f'target = "{target}"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nadversarial_space = "{space}"\n'
              f'adversarial_real = "{real}"\n'
              '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
     cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=3, extra=extra)
