@@ -242,9 +242,9 @@ def test_trajectory_distillation_replays_its_solves_and_resumes(tiny_model, tiny
     assert doc["meta"]["train_config"]["target"] == "trajectory" and student.guidance_mlp[-1].weight.abs().sum() > 0
 
 
-def test_the_adversarial_term_is_held_at_its_share_of_the_students_gradient(tiny_model):
-    """The student's adversarial gradient on its clean estimates is lambda_adv times the consistency
-    loss's, whatever the discriminator's scale; the discriminator's own loss reaches only it."""
+def _adversarial_case(tiny_model, lambda_adv: float, seed: int):
+    """A trajectory distillation of the tiny teacher with a small discriminator, and three batches of
+    latents (3 rows of 5 frames): the student's estimates (requiring grad), their target, the real side."""
     from salad.models.discriminator import DiscriminatorConfig, PromptDiscriminator
     from salad.models.io import load_denoiser
     from salad.training.consistency_task import ConsistencyTraining
@@ -254,11 +254,19 @@ def test_the_adversarial_term_is_held_at_its_share_of_the_students_gradient(tiny
     torch.manual_seed(0)
     disc = PromptDiscriminator(c.parts * c.latent_dim, c.text_dim, DiscriminatorConfig(width=8, levels=1))
     m = ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "trajectory",
-                            teacher_steps=6, discriminator=disc, lambda_adv=0.25)
-    g = torch.Generator().manual_seed(0)
-    shape = (3, 5, c.parts, c.latent_dim)
-    pred, target, real = (torch.randn(shape, generator=g) for _ in range(3))
-    pred.requires_grad_(True)
+                            teacher_steps=6, discriminator=disc, lambda_adv=lambda_adv)
+    g = torch.Generator().manual_seed(seed)
+    pred, target, real = (torch.randn(3, 5, c.parts, c.latent_dim, generator=g) for _ in range(3))
+    return m, teacher, pred.requires_grad_(True), target, real
+
+
+def test_the_adversarial_term_is_held_at_its_share_of_the_students_gradient(tiny_model):
+    """The student's adversarial gradient on its clean estimates is lambda_adv times the consistency
+    loss's, whatever the discriminator's scale; the discriminator's own loss reaches only it."""
+    from salad.training.consistency_task import ConsistencyTraining
+
+    m, teacher, pred, target, real = _adversarial_case(tiny_model, 0.25, seed=0)
+    disc, c = m.disc, teacher.config
     cond = {"frame_mask": torch.arange(5)[None] < torch.tensor([[5], [3], [4]]), "pooled": torch.randn(3, c.text_dim)}
     for scale in (1.0, 30.0):
         with torch.no_grad():
@@ -281,20 +289,9 @@ def test_the_adversarial_term_is_held_at_its_share_of_the_students_gradient(tiny
 def test_the_discriminator_can_judge_chosen_rows_alone(tiny_model):
     """With adversarial_rows, the other rows get no adversarial gradient and their real side does not
     reach the discriminator; the judged rows' share is lambda_adv of their own consistency gradient."""
-    from salad.models.discriminator import DiscriminatorConfig, PromptDiscriminator
-    from salad.models.io import load_denoiser
-    from salad.training.consistency_task import ConsistencyTraining
-
-    teacher, _ = load_denoiser(tiny_model / "denoiser")
+    m, teacher, pred, target, real = _adversarial_case(tiny_model, 0.5, seed=1)
     c = teacher.config
-    torch.manual_seed(0)
-    disc = PromptDiscriminator(c.parts * c.latent_dim, c.text_dim, DiscriminatorConfig(width=8, levels=1))
-    m = ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "trajectory",
-                            teacher_steps=6, discriminator=disc, lambda_adv=0.5)
-    g = torch.Generator().manual_seed(1)
-    shape = (3, 5, c.parts, c.latent_dim)
-    pred, target, real = (torch.randn(shape, generator=g) for _ in range(3))
-    pred.requires_grad_(True)
+    g = torch.Generator().manual_seed(2)
     rows = torch.tensor([True, False, True])
     cond = {"frame_mask": None, "pooled": torch.randn(3, c.text_dim, generator=g), "adversarial_rows": rows}
     loss = m._huber(pred, target, None)
@@ -329,6 +326,9 @@ def test_distillation_can_judge_the_rare_actions_alone(tiny_model, tiny_dataset,
     task = ConsistencyTask(load_toml(ConsistencyTrainConfig, cfg), show_progress=False)
     kicks = np.array([caps == ["a person kicks"] for caps in task.data.captions])
     rng = np.random.default_rng(0)
+    first = task.batch(rng)                                        # a fresh solve: stored with its marks
+    task.model(first)
+    assert torch.equal(task.model._solves[-1]["adversarial_rows"], first["adversarial_rows"])
     for _ in range(6):
         b = task.batch(rng)
         if "rows" in b:
