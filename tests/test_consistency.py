@@ -375,12 +375,14 @@ def test_the_teachers_stochastic_samples_can_be_the_discriminators_real_side(tin
     studio = torch.Generator().manual_seed(5)
     want = sample(model, fresh_noise(batch["noise"], studio), m.schedule, "dpm-sde", 8, cfg_scale=4.0,
                   cfg_rescale=0.7, cfg_cutoff=0.3, generator=studio)
-    m._sde_noise.manual_seed(5)
+    batch["sde_seed"] = torch.tensor(5)
     real = m._real_for(batch)
     torch.testing.assert_close(real, want, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(m._real_for(batch), real)                  # the batch's seed decides
     _, solved = m.solve(batch)
     assert not torch.allclose(real, solved, atol=1e-2) and not torch.allclose(real, batch["latents"], atol=1e-2)
-    assert not torch.allclose(m._real_for(batch), real, atol=1e-2)       # fresh noise each solve
+    batch["sde_seed"] = torch.tensor(6)
+    assert not torch.allclose(m._real_for(batch), real, atol=1e-2)       # fresh noise for each solve
     with pytest.raises(ValueError, match="trajectory"):
         ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "lcd",
                             discriminator=disc, lambda_adv=0.3, adversarial_real="teacher")

@@ -105,7 +105,6 @@ class ConsistencyTraining(nn.Module):
                            decoder.requires_grad_(False) if decoder is not None and self.disc is not None else None)
         self.latent_scale = latent_scale
         self.adversarial_real = adversarial_real
-        self._sde_noise = torch.Generator().manual_seed(0)   # the teacher's stochastic samples; not resumed
 
     def _apply(self, fn, recurse=True):
         for frozen in (self.teacher, self.decoder):
@@ -229,10 +228,13 @@ class ConsistencyTraining(nn.Module):
         """The teacher's clean latents for the batch's prompts, lengths and guidance scales from fresh
         noise by SDE-DPM-Solver++, guided as in solve: the livelier motions of the studio's sampler."""
         sched = self.schedule.sampler("dpm-sde", self.teacher_steps)
-        x = fresh_noise(batch["noise"], self._sde_noise)
+        # seeded by the batch (drawn from the run's generator, which a resume restores), so each solve's samples
+        # are those an unbroken run would draw
+        g = torch.Generator().manual_seed(int(batch["sde_seed"]))
+        x = fresh_noise(batch["noise"], g)
         for t in sched.timesteps:
             tt = torch.full((x.shape[0],), int(t), dtype=torch.long, device=x.device)
-            x = sched.step(self._guided(x, tt, batch), t, x, variance_noise=fresh_noise(x, self._sde_noise)).prev_sample
+            x = sched.step(self._guided(x, tt, batch), t, x, variance_noise=fresh_noise(x, g)).prev_sample
         return x
 
     @torch.no_grad()
@@ -355,6 +357,8 @@ class ConsistencyTask:
         b["timesteps"] = self.grid[torch.randint(0, len(self.grid), (B,), generator=g)]
         lo, hi = self.cfg.guidance_min, self.cfg.guidance_max
         b["guidance"] = lo + (hi - lo) * torch.rand(B, generator=g)
+        if self.cfg.lambda_adv > 0 and self.cfg.adversarial_real == "teacher":
+            b["sde_seed"] = torch.tensor(int(rng.integers(2 ** 62)))
         empty, empty_mask, empty_pooled = self.data.text.batch([""] * B)
         L = max(empty.shape[1], b["text"].shape[1])
         empty, empty_mask = _pad_tokens(empty, empty_mask, L)
