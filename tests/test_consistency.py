@@ -341,6 +341,9 @@ def test_distillation_can_judge_the_rare_actions_alone(tiny_model, tiny_dataset,
         cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=1, extra=extra.format(clips))
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / f"r{clips}")]) == 2
         assert f"adversarial_max_clips = {clips} leaves {words}" in capsys.readouterr().err
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra.format(2))
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "unlabelled")]) == 2
+    assert "adversarial picks actions by their content class, and this data has no content labels" in capsys.readouterr().err
 
 
 def test_the_teachers_stochastic_samples_can_be_the_discriminators_real_side(tiny_model):

@@ -153,11 +153,15 @@ class DenoiserTask:
     def rare_motions(self, max_clips: int, name: str, other: str) -> np.ndarray:
         """Per training motion, whether its content class has at most `max_clips` clips; `name` (the
         setting) and `other` (what the other classes' rows get) word the error where that splits nothing."""
-        if self.content is None and self.bundle is None:
-            self.content = dataset_content(self.dataset)
-        if self.content is None:
+        content = self.content
+        if content is None and self.bundle is None:
+            try:
+                content = dataset_content(self.dataset)
+            except ConfigError:
+                content = None
+        if content is None:
             raise ConfigError(f"{name} picks actions by their content class, and this data has no content labels")
-        _, cls, counts = np.unique(self.content, return_inverse=True, return_counts=True)
+        _, cls, counts = np.unique(content, return_inverse=True, return_counts=True)
         rare = counts <= max_clips
         if rare.all() or not rare.any():
             raise ConfigError(f"{name}_max_clips = {max_clips} leaves {'no' if rare.all() else 'every'} content "
@@ -253,8 +257,8 @@ class DenoiserTask:
             extra = {"features": feats[:, :T], "valid": act[:, :T] > 0.5}
         if self._learn is not None:
             extra["learn"] = torch.from_numpy(self._learn[idx])
-        return {**extra, "rows": torch.from_numpy(idx), "latents": latents, "frame_mask": frame_mask, "text": text, "text_mask": text_mask,
-                "pooled": pooled, "auto": torch.full((B,), auto),
+        return {**extra, "rows": torch.from_numpy(idx), "latents": latents, "frame_mask": frame_mask, "text": text,
+                "text_mask": text_mask, "pooled": pooled, "auto": torch.full((B,), auto),
                 "timesteps": torch.randint(0, self.schedule.config.train_steps, (B,), generator=g),
                 "noise": torch.randn(latents.shape, generator=g)}
 
