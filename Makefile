@@ -13,7 +13,7 @@ export HF_HUB_OFFLINE := 1
 export HF_HUB_DISABLE_TELEMETRY := 1
 export TRANSFORMERS_OFFLINE := 1
 
-.PHONY: setup system-deps test-deps demo test test-fast clean
+.PHONY: setup system-deps test-deps demo test test-fast student clean
 
 define apt_install
 	@missing=""; for p in $(1); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -51,6 +51,15 @@ test: setup test-deps
 
 test-fast: setup
 	SALAD_SHARED_DATA=$(SHARED_DATA) $(BIN)/python -m pytest -q -m "not slow and not browser"
+
+# Redistil the consistency student from assets/model's teacher in the two stages the embedded one was made by
+# (~1 h on 2 threads; run it again after an interruption and it resumes). Needs data/bandai-hml (README, Data).
+# The student lands in runs/consistency_adversarial_rare/model; measure it before copying it to assets/model.
+student: setup
+	$(BIN)/salad train consistency --config configs/consistency_fresh_cpu.toml --teacher assets/model \
+	    --out-dir runs/consistency_fresh --max-steps 2000
+	$(BIN)/salad train consistency --config configs/consistency_adversarial_rare_cpu.toml --teacher assets/model \
+	    --init-from runs/consistency_fresh/model
 
 clean:
 	rm -rf $(VENV) test-artifacts .pytest_cache
