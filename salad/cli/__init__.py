@@ -23,7 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     for add in (data.add_parser, generate.add_parser, edit.add_edit, bench.add_parser, eval.add_eval,
                 train.add_parser, control.add_parser, edit.add_edit_real, eval.add_eval_control, eval.add_eval_edit,
                 eval.add_eval_fidelity, eval.add_eval_length, eval.add_eval_real_edit, eval.add_eval_vae,
-                eval.add_eval_classifier):
+                eval.add_eval_classifier, train.add_average_parser):
         add(sub)
     return p
 

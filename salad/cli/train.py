@@ -1,4 +1,5 @@
-"""`salad train`: the VAE, the denoiser, its consistency-distilled student, the evaluator or the classifier."""
+"""`salad train`: the VAE, the denoiser, its consistency-distilled student, the evaluator or the classifier;
+`salad average`: the weight-by-weight mean of fine-tunes of one denoiser or student."""
 from __future__ import annotations
 
 
@@ -114,3 +115,26 @@ def add_parser(sub) -> None:
                    help="denoiser: let --init-from / --continue-from start from a denoiser trained on another VAE's "
                         "latents (e.g. before the VAE's encoder was retrained); it then re-learns this VAE's latents")
     t.set_defaults(func=cmd_train)
+
+
+def cmd_average(a) -> int:
+    from ..training.average import average_checkpoints
+    weights = a.weights if a.weights is not None else [1.0 / len(a.checkpoints)] * len(a.checkpoints)
+    out = average_checkpoints(a.checkpoints, weights, a.out)
+    print(f"average written to {out}")
+    return 0
+
+
+def add_average_parser(sub) -> None:
+    v = sub.add_parser("average", help="the weight-by-weight mean of denoisers or consistency students fine-tuned "
+                                       "from one start (a \"model soup\")",
+                       epilog="The checkpoints must share their architecture, text features and VAE, and students "
+                              "their teacher and guidance range. The average records its inputs (path, weight, step, "
+                              "SHA-256) under meta.average; a student's meta.consistency.default_for is not carried "
+                              "over: measure the average first.")
+    v.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT",
+                   help="checkpoint directories, e.g. assets/model/consistency or runs/NAME/model")
+    v.add_argument("--weights", type=float, nargs="+", metavar="W",
+                   help="one weight per checkpoint, in [0, 1], summing to 1 (default: equal)")
+    v.add_argument("--out", required=True, help="directory to write the average to (replaced atomically)")
+    v.set_defaults(func=cmd_average)
