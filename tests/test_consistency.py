@@ -346,6 +346,36 @@ def test_distillation_can_judge_the_rare_actions_alone(tiny_model, tiny_dataset,
     assert "adversarial picks actions by their content class, and this data has no content labels" in capsys.readouterr().err
 
 
+def test_distillation_can_judge_named_actions_alone(tiny_model, tiny_dataset, tmp_path, capsys):
+    """adversarial_classes marks the rows of the named content classes, whatever their counts; a class the
+    data lacks is refused with the ones it has, and so is naming classes beside adversarial_max_clips."""
+    from salad.cli import main
+    from salad.config import load_toml
+    from salad.training.configs import ConsistencyTrainConfig
+    from salad.training.consistency_task import ConsistencyTask
+
+    root = labelled_copy(tiny_dataset, tmp_path, kicks=2)          # 2 kicks, 6 walks in train
+    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nadversarial_classes = {}\n'
+             '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
+    kicks = None
+    for classes in (["walk"], ["kick"]):
+        cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=2, extra=extra.format(json.dumps(classes)))
+        task = ConsistencyTask(load_toml(ConsistencyTrainConfig, cfg), show_progress=False)
+        kicks = np.array([caps == ["a person kicks"] for caps in task.data.captions])
+        b = task.batch(np.random.default_rng(0))
+        want = kicks[b["rows"].numpy()]
+        assert b["adversarial_rows"].tolist() == (want if classes == ["kick"] else ~want).tolist()
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run")]) == 0
+    cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=1, extra=extra.format('["kick", "slash"]'))
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r1")]) == 2
+    assert "adversarial_classes names ['slash'], which no training motion has; the content classes are kick, walk" \
+        in capsys.readouterr().err
+    cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=1,
+                           extra=extra.format('["kick"]').replace("lambda_adv", "adversarial_max_clips = 2\nlambda_adv"))
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r2")]) == 2
+    assert "adversarial_classes must be empty when adversarial_max_clips picks the judged rows" in capsys.readouterr().err
+
+
 def test_the_teachers_stochastic_samples_can_be_the_discriminators_real_side(tiny_model):
     """adversarial_real = "teacher": the real side of a solved batch is the teacher sampled as the
     studio samples it (SDE-DPM-Solver++, guided at the row's scale, rescaled and cut off alike), from

@@ -221,6 +221,9 @@ class ConsistencyTrainConfig:
     # clips (the rare actions, whose motions the plain student tames most), so the common classes keep
     # what the consistency loss gives them
     adversarial_max_clips: int = 0
+    # or, instead, only the rows of these content classes (e.g. ["kick", "slash"]: the rare actions the
+    # student still tames, leaving the others' rows to the consistency loss)
+    adversarial_classes: list[str] = field(default_factory=list)
     # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
 
@@ -245,3 +248,5 @@ class ConsistencyTrainConfig:
         require(self.adversarial_real == "data" or self.target == "trajectory", where, "adversarial_real",
                 '"data" with target = "lcd" (the teacher\'s samples come with its solves)', self.adversarial_real)
         require(self.adversarial_max_clips >= 0, where, "adversarial_max_clips", ">= 0", self.adversarial_max_clips)
+        require(not (self.adversarial_classes and self.adversarial_max_clips), where, "adversarial_classes",
+                "empty when adversarial_max_clips picks the judged rows", self.adversarial_classes)

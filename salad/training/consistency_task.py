@@ -20,7 +20,8 @@ kicks). With lambda_adv > 0 a discriminator conditioned on the prompt also judge
 clean estimates against the real latents of the same batch (or, with adversarial_real = "teacher",
 the teacher's own stochastic samples of the same prompts and lengths), or both decoded by the frozen
 VAE with adversarial_space = "motion", where the root's velocity is a channel of its own; the
-student is pushed towards them. adversarial_max_clips > 0 has it judge the rare actions' rows alone.
+student is pushed towards them. adversarial_max_clips > 0 has it judge the rare actions' rows alone,
+adversarial_classes those of the named actions.
 """
 from __future__ import annotations
 
@@ -325,8 +326,11 @@ class ConsistencyTask:
             else:
                 frame_dim = c.parts * c.latent_dim
             disc = PromptDiscriminator(frame_dim, c.text_dim, cfg.discriminator)
-        self._judged_motions = (self.data.rare_motions(cfg.adversarial_max_clips, "adversarial", "unjudged")
-                                if cfg.lambda_adv > 0 and cfg.adversarial_max_clips > 0 else None)
+        self._judged_motions = None
+        if cfg.lambda_adv > 0 and cfg.adversarial_max_clips > 0:
+            self._judged_motions = self.data.rare_motions(cfg.adversarial_max_clips, "adversarial", "unjudged")
+        elif cfg.lambda_adv > 0 and cfg.adversarial_classes:
+            self._judged_motions = self.data.class_motions(cfg.adversarial_classes, "adversarial")
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
                                          cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff,
                                          student, disc, cfg.lambda_adv, decoder, self.data.latent_scale,

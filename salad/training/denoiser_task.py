@@ -153,6 +153,23 @@ class DenoiserTask:
     def rare_motions(self, max_clips: int, name: str, other: str) -> np.ndarray:
         """Per training motion, whether its content class has at most `max_clips` clips; `name` (the
         setting) and `other` (what the other classes' rows get) word the error where that splits nothing."""
+        _, cls, counts = np.unique(self._content_of_motions(name), return_inverse=True, return_counts=True)
+        rare = counts <= max_clips
+        if rare.all() or not rare.any():
+            raise ConfigError(f"{name}_max_clips = {max_clips} leaves {'no' if rare.all() else 'every'} content "
+                              f"class {other} (clips per class: {min(counts)}-{max(counts)}); choose a count between")
+        return rare[cls]
+
+    def class_motions(self, classes: list[str], name: str) -> np.ndarray:
+        """Per training motion, whether its content class is one of `classes` (`name`: the setting)."""
+        content = np.asarray(self._content_of_motions(name))
+        unknown = sorted(set(classes) - set(content.tolist()))
+        if unknown:
+            raise ConfigError(f"{name}_classes names {unknown}, which no training motion has; the content classes "
+                              f"are {', '.join(sorted(set(content.tolist())))}")
+        return np.isin(content, classes)
+
+    def _content_of_motions(self, name: str):
         content = self.content
         if content is None and self.bundle is None:
             try:
@@ -161,12 +178,7 @@ class DenoiserTask:
                 content = None
         if content is None:
             raise ConfigError(f"{name} picks actions by their content class, and this data has no content labels")
-        _, cls, counts = np.unique(content, return_inverse=True, return_counts=True)
-        rare = counts <= max_clips
-        if rare.all() or not rare.any():
-            raise ConfigError(f"{name}_max_clips = {max_clips} leaves {'no' if rare.all() else 'every'} content "
-                              f"class {other} (clips per class: {min(counts)}-{max(counts)}); choose a count between")
-        return rare[cls]
+        return content
 
     def _from_bundle(self, cfg: DenoiserTrainConfig) -> None:
         """Motions, latents and text features from a latent bundle (salad data bundle) instead
