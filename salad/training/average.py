@@ -27,7 +27,7 @@ def average_checkpoints(paths: Sequence[str | Path], weights: Sequence[float], o
     if any(not 0.0 <= w <= 1.0 for w in weights) or abs(sum(weights) - 1.0) > 1e-6:
         raise ValueError(f"weights must lie in [0, 1] and sum to 1, got {list(weights)}")
     if any(Path(p).resolve() == Path(out).resolve() for p in paths):
-        raise ValueError(f"--out {out} is one of the checkpoints averaged: write the average elsewhere")
+        raise ValueError(f"the output {out} is one of the checkpoints averaged: write the average elsewhere")
     loaded = [load_checkpoint(p, kind="denoiser") for p in paths]
     ref_doc, ref_parts = loaded[0]
     ref_info = _consistency(ref_doc)
@@ -57,15 +57,15 @@ def _consistency(doc: dict) -> dict | None:
 
 
 def _check_same_tensors(path, parts: dict, ref_path, ref_parts: dict) -> None:
+    if parts.keys() != ref_parts.keys():
+        raise ValueError(f"{path}: holds other parts ({sorted(parts)}) than {ref_path} ({sorted(ref_parts)})")
     for name, tensors in ref_parts.items():
-        other = parts.get(name, {})
+        other = parts[name]
         if other.keys() != tensors.keys():
             raise ValueError(f"{path}: part {name!r} holds other weights than {ref_path}'s")
         bad = [k for k in tensors if other[k].shape != tensors[k].shape or other[k].dtype != tensors[k].dtype]
         if bad:
             raise ValueError(f"{path}: {name}/{bad[0]} has another shape or dtype than in {ref_path}")
-    if parts.keys() != ref_parts.keys():
-        raise ValueError(f"{path}: holds other parts ({sorted(parts)}) than {ref_path} ({sorted(ref_parts)})")
 
 
 def _mean(tensors: list[torch.Tensor], weights: Sequence[float], name: str, paths) -> torch.Tensor:
