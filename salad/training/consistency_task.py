@@ -329,7 +329,7 @@ class ConsistencyTask:
         self._judged_motions = None
         if cfg.lambda_adv > 0 and cfg.adversarial_max_clips > 0:
             self._judged_motions = self.data.rare_motions(cfg.adversarial_max_clips, "adversarial", "unjudged")
-        elif cfg.lambda_adv > 0 and cfg.adversarial_classes:
+        elif cfg.lambda_adv > 0 and cfg.adversarial_classes:       # the config keeps the two exclusive
             self._judged_motions = self.data.class_motions(cfg.adversarial_classes, "adversarial")
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
                                          cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff,

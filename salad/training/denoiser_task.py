@@ -163,10 +163,11 @@ class DenoiserTask:
     def class_motions(self, classes: list[str], name: str) -> np.ndarray:
         """Per training motion, whether its content class is one of `classes` (`name`: the setting)."""
         content = np.asarray(self._content_of_motions(name))
-        unknown = sorted(set(classes) - set(content.tolist()))
+        known = set(content.tolist())
+        unknown = sorted(set(classes) - known)
         if unknown:
             raise ConfigError(f"{name}_classes names {unknown}, which no training motion has; the content classes "
-                              f"are {', '.join(sorted(set(content.tolist())))}")
+                              f"are {', '.join(sorted(known))}")
         return np.isin(content, classes)
 
     def _content_of_motions(self, name: str):
