@@ -140,12 +140,14 @@ def run(model: str | None, steps: int | None, sampler: str, precision: str, thre
         studio, asked = studio_app.studio, sampler
         computed = studio.pipe.precision
         if sampler == "auto":
-            sampler, guided = studio.default_sampler, studio.control_sampler
+            sampler, editing, guided = studio.default_sampler, studio.edit_sampler, studio.control_sampler
         else:
+            editing = sampler
             guided = sampler if sampler in ("ddim", "consistency") else "ddim"     # no DPM-Solver++ guidance
         try:
             # the pipeline's own check: the default steps, and a clear refusal of a student the model lacks
             guided_steps = studio.pipe.check_sampling(steps, CFG, guided)[0]
+            edit_steps = studio.pipe.check_sampling(steps, CFG, editing)[0]
             steps, _, sampler, _ = studio.pipe.check_sampling(steps, CFG, sampler)
         except ValueError as exc:
             studio_app.close()
@@ -166,7 +168,7 @@ def run(model: str | None, steps: int | None, sampler: str, precision: str, thre
 
             def edit(mode: str, target: str, mirror: str, seed: int):
                 return shown(client.predict(PROMPTS[0], mode, target, None, "", 2.0, mirror, 0.2, "auto", True, 4.0,
-                                            seed, steps, CFG, sampler, True, api_name="/edit"))
+                                            seed, edit_steps, CFG, editing, True, api_name="/edit"))
 
             path_seconds = min(CONTROL_SECONDS, float(studio_app.studio.pipe.max_seconds))
 
@@ -216,7 +218,7 @@ def run(model: str | None, steps: int | None, sampler: str, precision: str, thre
             studio_app.close()
             remove_download_leftovers(started)
     return {"settings": {"model": model or "embedded", "steps": steps, "sampler": sampler, "asked": asked,
-                         "control_sampler": guided, "control_steps": guided_steps, "precision": precision,
+                         "edit_sampler": editing, "edit_steps": edit_steps, "control_sampler": guided, "control_steps": guided_steps, "precision": precision,
                          "computed": computed,
                          "threads": threads, "fetch_all": fetch_all, "render_workers": render_workers}} | report | {
             "targets_s": {"generate": GENERATE_TARGET_S, "edit": EDIT_TARGET_S, "control": CONTROL_TARGET_S,
@@ -243,8 +245,9 @@ def word_clicks(client, generated) -> list[float]:
 def format_table(report: dict) -> str:
     s = report["settings"]
     fetched = "every returned file fetched" if s.get("fetch_all") else "videos fetched"
+    edit = f", edit {s['edit_sampler']}-{s['edit_steps']}" if "edit_sampler" in s else ""
     control = f", control {s['control_sampler']}-{s['control_steps']}" if "control_sampler" in s else ""
-    lines = [f"studio latency, {s['model']} model, {s['sampler']}-{s['steps']}{control}, "
+    lines = [f"studio latency, {s['model']} model, {s['sampler']}-{s['steps']}{edit}{control}, "
              f"{s['computed']} ({s['precision']}), threads {s['threads'] or 'default'}, "
              f"{s.get('render_workers', 0)} render worker(s), {fetched}"]
     if "matmul_reference_ms" in report:

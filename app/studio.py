@@ -149,22 +149,25 @@ class Studio:
         self.workspace = workspace
         self.control_examples = control_examples      # a folder of control .npy files, or None
         self.samplers = offered_samplers(pipe)
-        control = sampler
+        edit = control = sampler
         if sampler == "auto":
             # the student starts only the panels its checkpoint says it was measured fit for (the embedded
-            # one: guided control, not motions from text; assets/RESULTS.md, *The shipped pair*); otherwise text takes the
-            # teacher in dpm-sde's 25 steps (DDIM-50's fidelity table in half the time) and guided
-            # control DDIM, the one teacher sampler it guides
+            # one: guided control, not motions from text; assets/RESULTS.md, *The shipped pair*); otherwise text
+            # and edits take the teacher in dpm-sde's 25 steps (DDIM-50's fidelity table in half the time) and
+            # guided control DDIM, the one teacher sampler it guides. Edits are their own use: a student can
+            # make motions as well as its teacher and still follow an edited prompt worse.
             sampler = "consistency" if pipe.student_preferred("text") else "dpm-sde"
+            edit = "consistency" if pipe.student_preferred("edit") else "dpm-sde"
             control = "consistency" if pipe.student_preferred("control") else "ddim"
         elif sampler == "consistency" and sampler not in self.samplers:
             log.warning("the consistency sampler was asked for but %s has no consistency student (a consistency/ "
                         "checkpoint); the panels default to the teacher", pipe.source or "the model")
-            sampler, control = "dpm-sde", "ddim"
+            sampler, edit, control = "dpm-sde", "dpm-sde", "ddim"
         elif sampler not in self.samplers:
             raise ValueError(f"sampler must be one of {', '.join(self.samplers)}, got {sampler!r}")
-        self.default_sampler = sampler                # what the Generate, Edit and Real motion panels start with
-        self.control_sampler = control                # what the Control panel starts with
+        self.default_sampler = sampler                # what the Generate panel starts with
+        self.edit_sampler = edit                      # the Edit and Real motion panels
+        self.control_sampler = control                # the Control panel
         # Sampling swaps an attention controller into the shared denoiser, so only one
         # sampling runs at a time; rendering (its own lock) overlaps with the next sampling.
         self._model_lock = threading.Lock()

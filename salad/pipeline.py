@@ -102,7 +102,7 @@ SOURCE_RUNS = 2
 # off by default, as the studio's samplings mostly run observed (eager) and one-off commands would not repay it.
 COMPILABLE = ("denoiser", "student", "decoder")
 # what a student can be measured fit for (meta.consistency.default_for, Pipeline.student_preferred)
-STUDENT_USES = ("text", "control")
+STUDENT_USES = ("text", "edit", "control")
 # The teacher's sampling: DDIM with fresh noise at every step (eta = 1) and guidance rescaled
 # halfway to the conditional prediction's scale. The deterministic DDIM (eta = 0) blurs gait
 # phases: on the embedded model its walks kept a foot still in 0.62 of their frames against
@@ -352,9 +352,9 @@ class Pipeline:
 
     def student_preferred(self, use: str) -> bool:
         """Whether the student was measured to meet its quality bounds against the teacher for `use`
-        ("text": motions from text, their edits and real-motion edits; "control": guided control), as
-        its checkpoint records in meta.consistency.default_for. A student without that record (a fresh
-        distillation) is preferred nowhere until someone has measured it."""
+        ("text": motions from text; "edit": the four edit modes on generated and real motion; "control":
+        guided control), as its checkpoint records in meta.consistency.default_for. A student without that
+        record (a fresh distillation) is preferred nowhere until someone has measured it."""
         if use not in STUDENT_USES:
             raise ValueError(f"use must be one of {', '.join(STUDENT_USES)}, got {use!r}")
         return self.student is not None and use in self.student_info.get("default_for", ())

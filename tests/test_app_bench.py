@@ -8,8 +8,8 @@ def test_studio_latency_bench_times_every_request(tiny_model):
     report = run(str(tiny_model), steps=2, sampler="auto", precision="auto", threads=1)
     assert report["settings"]["fetch_all"] is False, "the page fetches the videos only"
     # the studio's defaults: the teacher's dpm-sde for text, DDIM for guided control (the model has no student)
-    assert [report["settings"][k] for k in ("sampler", "control_sampler", "steps", "control_steps")] == [
-        "dpm-sde", "ddim", 2, 2]
+    assert [report["settings"][k] for k in ("sampler", "edit_sampler", "control_sampler", "steps", "edit_steps",
+                                            "control_steps")] == ["dpm-sde", "dpm-sde", "ddim", 2, 2, 2]
     for _, key, _ in ROWS:
         assert report[key] and all(t > 0 for t in report[key]), key
     for preview, full in (("generate_s", "generate_full_s"), ("edit_first_s", "edit_first_full_s"),
@@ -19,7 +19,7 @@ def test_studio_latency_bench_times_every_request(tiny_model):
     for text in ("generate → preview video", "generate → full video", "edit again, same source → preview",
                  "edit this motion → preview", "control (path) → preview video", "word click → heatmap"):
         assert text in table, text
-    assert "dpm-sde-2, control ddim-2" in table.splitlines()[0]
+    assert "dpm-sde-2, edit dpm-sde-2, control ddim-2" in table.splitlines()[0]
     # the studio's default precision, as this CPU computes it
     assert report["settings"]["computed"] in ("fp32", "bf16 autocast from 2 rows a forward")
     assert f"{report['settings']['computed']} (auto)" in table.splitlines()[0]

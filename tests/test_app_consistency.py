@@ -192,10 +192,23 @@ def test_the_default_sampler_of_each_panel(student_pipe, pipe, tmp_path, caplog,
         assert (Studio(student_pipe, ws).default_sampler, Studio(student_pipe, ws).control_sampler) == ("dpm-sde",
                                                                                                         "ddim")
         monkeypatch.setitem(student_pipe.student_info, "default_for", ["text", "control"])
-        assert Studio(student_pipe, ws).default_sampler == "consistency"
+        text = Studio(student_pipe, ws)
+        assert (text.default_sampler, text.edit_sampler, text.control_sampler) == ("consistency", "dpm-sde",
+                                                                                   "consistency")
+        p = props(build_studio(text, Settings(tmp_dir=tmp_path)))
+        assert (p["sampler"]["value"], p["edit-sampler"]["value"], p["real-sampler"]["value"]) == (
+            "consistency", "dpm-sde", "ddim")
+        monkeypatch.setitem(student_pipe.student_info, "default_for", ["edit"])
+        edits = Studio(student_pipe, ws)
+        assert (edits.default_sampler, edits.edit_sampler, edits.control_sampler) == ("dpm-sde", "consistency",
+                                                                                      "ddim")
+        p = props(build_studio(edits, Settings(tmp_dir=tmp_path)))
+        assert (p["sampler"]["value"], p["edit-sampler"]["value"], p["real-sampler"]["value"]) == (
+            "dpm-sde", "consistency", "consistency")
         monkeypatch.setitem(student_pipe.student_info, "default_for", ["control"])
         auto = Studio(student_pipe, ws)
-        assert (auto.default_sampler, auto.control_sampler) == ("dpm-sde", "consistency")
+        assert (auto.default_sampler, auto.edit_sampler, auto.control_sampler) == ("dpm-sde", "dpm-sde",
+                                                                                   "consistency")
         p = props(build_studio(auto, Settings(tmp_dir=tmp_path)))
         for radio, steps, sampler, n in (("sampler", "steps", "dpm-sde", 25),
                                          ("edit-sampler", "edit-steps", "dpm-sde", 25),
@@ -209,7 +222,8 @@ def test_the_default_sampler_of_each_panel(student_pipe, pipe, tmp_path, caplog,
         # asking for the student of a model without one falls back to the teacher, with a warning
         with caplog.at_level(logging.WARNING, logger="salad.studio"):
             studio = Studio(pipe, ws, sampler="consistency")
-        assert (studio.default_sampler, studio.control_sampler) == ("dpm-sde", "ddim")
+        assert (studio.default_sampler, studio.edit_sampler, studio.control_sampler) == ("dpm-sde", "dpm-sde",
+                                                                                         "ddim")
         assert "no consistency student" in caplog.text
         p = props(build_studio(studio, Settings(tmp_dir=tmp_path)))
         assert p["sampler"]["value"] == "dpm-sde" and p["steps"]["value"] == 25

@@ -564,7 +564,7 @@ def test_the_student_is_preferred_only_where_its_checkpoint_says_so(tiny_student
 
     # a fresh distillation records no measurement, so it is preferred nowhere
     assert not student_pipe.student_preferred("text") and not student_pipe.student_preferred("control")
-    with pytest.raises(ValueError, match="use must be one of text, control"):
+    with pytest.raises(ValueError, match="use must be one of text, edit, control"):
         student_pipe.student_preferred("generate")
 
     def with_uses(uses):
@@ -580,8 +580,11 @@ def test_the_student_is_preferred_only_where_its_checkpoint_says_so(tiny_student
 
     measured = load_pipeline(with_uses(["control"]), bf16=False)
     assert measured.student_preferred("control") and not measured.student_preferred("text")
+    assert not measured.student_preferred("edit")
+    edits = load_pipeline(with_uses(["edit"]), bf16=False)
+    assert edits.student_preferred("edit") and not edits.student_preferred("text")
     for bad in (["generate"], "control"):
-        with pytest.raises(CheckpointError, match="default_for must be a list drawn from text, control"):
+        with pytest.raises(CheckpointError, match="default_for must be a list drawn from text, edit, control"):
             load_pipeline(with_uses(bad))
 
 

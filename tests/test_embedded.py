@@ -30,6 +30,7 @@ def test_embedded_student_is_recorded_fit_for_guided_control_only(pipe):
     text panels start on the teacher."""
     assert pipe.student is not None
     assert pipe.student_preferred("control") and not pipe.student_preferred("text")
+    assert not pipe.student_preferred("edit")
 
 
 def test_embedded_model_chooses_a_length_itself(pipe):

@@ -102,12 +102,12 @@ def build_studio(studio: Studio, settings: Settings) -> gr.Blocks:
             with gr.Tab("Attention", id="attention", elem_id="attention-tab"):
                 att = build_attention_panel()
             with gr.Tab("Edit", id="edit", elem_id="edit-tab"):
-                ed = build_edit_panel(pipe, samplers, sampler)
+                ed = build_edit_panel(pipe, samplers, studio.edit_sampler)
             with gr.Tab("Control", id="control", elem_id="control-tab"):
                 ctl = build_control_panel(pipe, list_examples(studio.control_examples), samplers,
                                           studio.control_sampler)
             with gr.Tab("Real motion", id="real", elem_id="real-tab"):
-                real = build_real_panel(clips.choices() if clips else [], samplers, sampler)
+                real = build_real_panel(clips.choices() if clips else [], samplers, studio.edit_sampler)
         gr.Markdown(LICENCE_NOTE)
 
         gen.auto_length.input(h["length_mode"], gen.auto_length, gen.seconds, api_name="length_mode",
