@@ -50,6 +50,20 @@ def test_resume_continues_exactly(tiny_dataset, tmp_path):
     assert [l["step"] for l in lines] == list(range(1, 7))
 
 
+def test_the_log_keeps_the_means_since_its_last_line_and_the_learning_rate_as_it_is(tiny_dataset, tmp_path):
+    fit(vae_config(tiny_dataset, tmp_path / "every", steps=4, every=4))
+    cfg = vae_config(tiny_dataset, tmp_path / "pairs", steps=4, every=4)
+    cfg.run.log_every = 2
+    fit(cfg)
+    every, pairs = ([json.loads(l) for l in (tmp_path / run / "log.jsonl").read_text().splitlines()]
+                    for run in ("every", "pairs"))
+    assert [r["step"] for r in pairs] == [2, 4]
+    for row, (a, b) in zip(pairs, (every[0:2], every[2:4])):
+        assert row["loss"] == pytest.approx((a["loss"] + b["loss"]) / 2, rel=1e-6)
+        assert row["lr"] == b["lr"]
+    assert every[0]["lr"] < every[1]["lr"], "in the warm-up, so a mean would differ"
+
+
 def test_resume_refuses_a_different_model(tiny_dataset, tmp_path):
     fit(vae_config(tiny_dataset, tmp_path / "c", steps=2, every=2))
     cfg = vae_config(tiny_dataset, tmp_path / "c", steps=4)

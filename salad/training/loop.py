@@ -304,9 +304,12 @@ class Trainer:
         bar = tqdm(total=total, initial=self.step_count, disable=self.rank != 0, dynamic_ncols=True,
                    desc=self.task.kind)
         t0, n0 = time.time(), 0
+        window: dict[str, list[float]] = {}
         while self.step_count < total:
             batch = self.task.batch(self.rng)
             logs = self.step(batch)
+            for k, v in logs.items():
+                window.setdefault(k, []).append(v)
             n = self.optim_cfg.batch_size * self.world
             self.samples_seen += n
             n0 += n
@@ -314,6 +317,10 @@ class Trainer:
             validate = self._validation_due(total)
             if self.step_count % self.run_cfg.log_every == 0 or self.step_count == total or validate:
                 rate = n0 / max(time.time() - t0, 1e-9)
+                # one step's loss and batch statistics are mostly its draw: the log keeps the means since the
+                # last line (over the steps that reported each), and the learning rate as it is now
+                logs = {k: sum(v) / len(v) for k, v in window.items()} | {"lr": logs["lr"]}
+                window = {}
                 val = self.validate() if validate else None
                 if val is not None:
                     logs["val_loss"] = val
