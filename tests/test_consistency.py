@@ -376,6 +376,40 @@ def test_distillation_can_judge_named_actions_alone(tiny_model, tiny_dataset, tm
     assert "adversarial_classes must be empty when adversarial_max_clips picks the judged rows" in capsys.readouterr().err
 
 
+def test_judged_actions_can_take_rows_of_every_solved_batch(tiny_model, tiny_dataset, tmp_path, capsys):
+    """adversarial_rows puts that many of the judged actions' motions first in every batch the teacher
+    solves, and the replays train on those solves, so every step judges them whatever the draw; it
+    needs judged actions and a batch to fit in."""
+    from salad.cli import main
+    from salad.config import load_toml
+    from salad.training.configs import ConsistencyTrainConfig
+    from salad.training.consistency_task import ConsistencyTask
+
+    root = labelled_copy(tiny_dataset, tmp_path, kicks=2)          # 2 kicks, 6 walks in train
+    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\n{}adversarial_rows = {}\n'
+             '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
+    judged = 'adversarial_classes = ["kick"]\n'
+    cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=4, extra=extra.format(judged, 2))
+    task = ConsistencyTask(load_toml(ConsistencyTrainConfig, cfg), show_progress=False)
+    kicks = np.array([caps == ["a person kicks"] for caps in task.data.captions])
+    rng, fresh = np.random.default_rng(0), 0
+    for _ in range(8):
+        b = task.batch(rng)
+        if "rows" in b:                                            # a solved batch, not a replay of one
+            fresh += 1
+            assert kicks[b["rows"][:2].numpy()].all() and b["adversarial_rows"][:2].all()
+            assert b["adversarial_rows"].tolist() == kicks[b["rows"].numpy()].tolist()
+    assert fresh == 4
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run")]) == 0
+    rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert len(rows) == 4 and all(r["judged_rows"] >= 0.5 for r in rows), "2 rows of 4 at every step"
+    for text, words in ((extra.format(judged, 5), "adversarial_rows must be in 0..optim.batch_size (4), got 5"),
+                        (extra.format("", 1), "adversarial_rows must be 0 unless lambda_adv > 0 and")):
+        cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=1, extra=text)
+        assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "bad")]) == 2
+        assert words in capsys.readouterr().err
+
+
 def test_the_teachers_stochastic_samples_can_be_the_discriminators_real_side(tiny_model):
     """adversarial_real = "teacher": the real side of a solved batch is the teacher sampled as the
     studio samples it (SDE-DPM-Solver++, guided at the row's scale, rescaled and cut off alike), from

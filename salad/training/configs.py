@@ -224,6 +224,10 @@ class ConsistencyTrainConfig:
     # or, instead, only the rows of these content classes (e.g. ["kick", "slash"]: the rare actions the
     # student still tames, leaving the others' rows to the consistency loss)
     adversarial_classes: list[str] = field(default_factory=list)
+    # rows of every batch the teacher solves given to those judged actions' motions (drawn by the class
+    # balance among them); 0: only those the batch happens to draw. A run solves one batch in `replay`
+    # steps (nine in 100 steps at replay = 12), so otherwise whether they are judged at all is mostly the seed.
+    adversarial_rows: int = 0
     # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
 
@@ -250,3 +254,9 @@ class ConsistencyTrainConfig:
         require(self.adversarial_max_clips >= 0, where, "adversarial_max_clips", ">= 0", self.adversarial_max_clips)
         require(not (self.adversarial_classes and self.adversarial_max_clips), where, "adversarial_classes",
                 "empty when adversarial_max_clips picks the judged rows", self.adversarial_classes)
+        require(0 <= self.adversarial_rows <= self.optim.batch_size, where, "adversarial_rows",
+                f"in 0..optim.batch_size ({self.optim.batch_size})", self.adversarial_rows)
+        require(not self.adversarial_rows or (self.lambda_adv > 0 and (self.adversarial_classes
+                                                                        or self.adversarial_max_clips)),
+                where, "adversarial_rows", "0 unless lambda_adv > 0 and adversarial_classes or adversarial_max_clips "
+                "names the judged actions", self.adversarial_rows)

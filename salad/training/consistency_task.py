@@ -347,11 +347,22 @@ class ConsistencyTask:
         return {"point": torch.randint(0, len(self.model.points), (B,), generator=g),
                 "pick": torch.rand((), generator=g), "fresh": torch.tensor((self._drawn - 1) % self.cfg.replay == 0)}
 
+    def _judged_draw(self, rng: np.random.Generator) -> np.ndarray | None:
+        """adversarial_rows judged motions for a fresh batch's first rows, drawn as the class balance
+        draws them (None: none asked)."""
+        k = self.cfg.adversarial_rows
+        if not k:
+            return None
+        judged = np.flatnonzero(self._judged_motions)
+        w = self.data.draw_weights
+        p = None if w is None else w[judged] / w[judged].sum()
+        return judged[rng.choice(len(judged), size=k, p=p)]
+
     def batch(self, rng: np.random.Generator) -> dict:
         replay = self._replayed(rng)
         if replay is not None and not bool(replay["fresh"]):
             return replay
-        b = self.data.batch(rng)
+        b = self.data.batch(rng, self._judged_draw(rng))
         if replay is not None:
             b.update(replay)
         if self._judged_motions is not None:

@@ -136,7 +136,7 @@ class DenoiserTask:
                                           Path(d.root) / TEXT_CACHE, progress=show_progress, dtype=torch.bfloat16)
                          if encode_text else None)
         self._by_length = np.argsort(np.minimum(self.lengths, self.canvas), kind="stable")
-        self._weights = class_weights(self.content, d.balance)
+        self.draw_weights = class_weights(self.content, d.balance)     # per motion; None: uniform
         self.schedule = NoiseSchedule(cfg.diffusion)
         torch.manual_seed(cfg.run.seed)
         self.model = DenoiserTraining(Denoiser(cfg.model), self.schedule, cfg.min_snr_gamma)
@@ -224,10 +224,11 @@ class DenoiserTask:
             feats = feats[s:s + max_len]
         return feats[: (len(feats) // 4) * 4]
 
-    def batch(self, rng: np.random.Generator) -> dict:
+    def batch(self, rng: np.random.Generator, first: np.ndarray | None = None) -> dict:
+        """A training batch; `first`: motions that take its first rows, whatever the draw gave them."""
         B = self.cfg.optim.batch_size
         auto = bool(rng.random() < self.cfg.auto_length_prob) if self.cfg.model.length_modes else False
-        w, span = self._weights, min(len(self._by_length), 4 * B)
+        w, span = self.draw_weights, min(len(self._by_length), 4 * B)
         if auto:
             idx = rng.integers(0, len(self.lengths), size=B) if w is None else rng.choice(len(w), size=B, p=w)
         elif w is None:
@@ -241,6 +242,8 @@ class DenoiserTask:
             start = min(max(centre - span // 2, 0), len(self._by_length) - span)
             window = self._by_length[start:start + span]
             idx = window[rng.choice(span, size=B, p=w[window] / w[window].sum())]
+        if first is not None:
+            idx[: len(first)] = first
         # Every motion is encoded followed by padding with activation 0 (the way the VAE saw
         # motion ends in training) on the whole canvas; fixed-length rows then keep only their
         # own latent frames (masked in time), auto-length rows keep the whole canvas.
