@@ -218,8 +218,8 @@ def run(model: str | None, steps: int | None, sampler: str, precision: str, thre
             studio_app.close()
             remove_download_leftovers(started)
     return {"settings": {"model": model or "embedded", "steps": steps, "sampler": sampler, "asked": asked,
-                         "edit_sampler": editing, "edit_steps": edit_steps, "control_sampler": guided, "control_steps": guided_steps, "precision": precision,
-                         "computed": computed,
+                         "edit_sampler": editing, "edit_steps": edit_steps, "control_sampler": guided,
+                         "control_steps": guided_steps, "precision": precision, "computed": computed,
                          "threads": threads, "fetch_all": fetch_all, "render_workers": render_workers}} | report | {
             "targets_s": {"generate": GENERATE_TARGET_S, "edit": EDIT_TARGET_S, "control": CONTROL_TARGET_S,
                           "word_click": WORD_TARGET_S}}
