@@ -85,14 +85,14 @@ def load_toml(cls: type[T], path: str | Path) -> T:
 
 
 def apply_overrides(cfg, args) -> None:
-    """The command line's --out-dir, --max-steps, --data, --bundle, --balance, --threads, --device and --vae, where
-    given, win over the file; the result is validated again."""
+    """The command line's --out-dir, --max-steps, --data, --bundle, --balance, --threads, --device, --seed and
+    --vae, where given, win over the file; the result is validated again."""
     for flag, section, name in (("out_dir", "run", "out_dir"), ("max_steps", "optim", "max_steps"),
                                 ("data", "data", "root"), ("bundle", "data", "bundle"), ("balance", "data", "balance"),
-                                ("threads", "run", "threads"), ("device", "run", "device"),
+                                ("threads", "run", "threads"), ("device", "run", "device"), ("seed", "run", "seed"),
                                 ("vae", None, "vae")):
         value = getattr(args, flag, None)
-        if value is None or (not value and flag != "balance"):     # a balance of 0 is a value
+        if value is None or (not value and flag not in ("balance", "seed")):     # a balance or seed of 0 is a value
             continue
         target = getattr(cfg, section) if section else cfg
         if not hasattr(target, name):

@@ -29,6 +29,11 @@ def test_command_line_overrides_win_only_where_given():
     assert cfg.data.balance == 1.0                                     # not given: the file's
     apply_overrides(cfg, Namespace(balance=0.0))                       # 0 (every class alike) is a value, not "unset"
     assert cfg.data.balance == 0.0
+    cfg.run.seed = 3
+    apply_overrides(cfg, Namespace(seed=None))
+    assert cfg.run.seed == 3
+    apply_overrides(cfg, Namespace(seed=0))                            # so is seed 0
+    assert cfg.run.seed == 0
 
 
 CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.toml"))

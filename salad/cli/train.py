@@ -95,6 +95,8 @@ def add_parser(sub) -> None:
                         "drawn, as (its clip count)^balance: 1 as recorded, 0 every class alike, down to -1 the rarer "
                         "classes more often")
     t.add_argument("--threads", type=int, help="override run.threads (CPU threads for this process)")
+    t.add_argument("--seed", type=int, help="override run.seed (the batches' draw and the initial weights): runs of "
+                                            "one recipe with other seeds, e.g. to average them (salad average)")
     t.add_argument("--device", help="override run.device: auto (default: a CUDA GPU when torch sees one, else the "
                                     "CPU), cpu, cuda or cuda:N; under torchrun each process takes its LOCAL_RANK's GPU")
     t.add_argument("--vae", help="denoiser: override vae (the VAE whose latents it learns), e.g. assets/model/vae")
