@@ -191,20 +191,16 @@ def test_the_default_sampler_of_each_panel(student_pipe, pipe, tmp_path, caplog,
         monkeypatch.delitem(student_pipe.student_info, "default_for")
         assert (Studio(student_pipe, ws).default_sampler, Studio(student_pipe, ws).control_sampler) == ("dpm-sde",
                                                                                                         "ddim")
-        monkeypatch.setitem(student_pipe.student_info, "default_for", ["text", "control"])
-        text = Studio(student_pipe, ws)
-        assert (text.default_sampler, text.edit_sampler, text.control_sampler) == ("consistency", "dpm-sde",
-                                                                                   "consistency")
-        p = props(build_studio(text, Settings(tmp_dir=tmp_path)))
-        assert (p["sampler"]["value"], p["edit-sampler"]["value"], p["real-sampler"]["value"]) == (
-            "consistency", "dpm-sde", "ddim")
-        monkeypatch.setitem(student_pipe.student_info, "default_for", ["edit"])
-        edits = Studio(student_pipe, ws)
-        assert (edits.default_sampler, edits.edit_sampler, edits.control_sampler) == ("dpm-sde", "consistency",
-                                                                                      "ddim")
-        p = props(build_studio(edits, Settings(tmp_dir=tmp_path)))
-        assert (p["sampler"]["value"], p["edit-sampler"]["value"], p["real-sampler"]["value"]) == (
-            "dpm-sde", "consistency", "consistency")
+        # (Generate, Edit, Control) samplers, then the Generate, Edit and Real motion radios
+        for uses, samplers, radios in ((["text", "control"], ("consistency", "dpm-sde", "consistency"),
+                                        ("consistency", "dpm-sde", "ddim")),
+                                       (["edit"], ("dpm-sde", "consistency", "ddim"),
+                                        ("dpm-sde", "consistency", "consistency"))):
+            monkeypatch.setitem(student_pipe.student_info, "default_for", uses)
+            studio = Studio(student_pipe, ws)
+            assert (studio.default_sampler, studio.edit_sampler, studio.control_sampler) == samplers, uses
+            p = props(build_studio(studio, Settings(tmp_dir=tmp_path)))
+            assert tuple(p[r]["value"] for r in ("sampler", "edit-sampler", "real-sampler")) == radios, uses
         monkeypatch.setitem(student_pipe.student_info, "default_for", ["control"])
         auto = Studio(student_pipe, ws)
         assert (auto.default_sampler, auto.edit_sampler, auto.control_sampler) == ("dpm-sde", "dpm-sde",

@@ -357,7 +357,6 @@ def test_distillation_can_judge_named_actions_alone(tiny_model, tiny_dataset, tm
     root = labelled_copy(tiny_dataset, tmp_path, kicks=2)          # 2 kicks, 6 walks in train
     extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nadversarial_classes = {}\n'
              '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
-    kicks = None
     for classes in (["walk"], ["kick"]):
         cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=2, extra=extra.format(json.dumps(classes)))
         task = ConsistencyTask(load_toml(ConsistencyTrainConfig, cfg), show_progress=False)

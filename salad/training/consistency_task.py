@@ -331,6 +331,12 @@ class ConsistencyTask:
             self._judged_motions = self.data.rare_motions(cfg.adversarial_max_clips, "adversarial", "unjudged")
         elif cfg.lambda_adv > 0 and cfg.adversarial_classes:       # the config keeps the two exclusive
             self._judged_motions = self.data.class_motions(cfg.adversarial_classes, "adversarial")
+        # the motions adversarial_rows draws from, and how often each (the class balance among them)
+        self._judged_index = self._judged_p = None
+        if cfg.adversarial_rows:
+            self._judged_index = np.flatnonzero(self._judged_motions)
+            w = self.data.draw_weights
+            self._judged_p = None if w is None else w[self._judged_index] / w[self._judged_index].sum()
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
                                          cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff,
                                          student, disc, cfg.lambda_adv, decoder, self.data.latent_scale,
@@ -348,15 +354,11 @@ class ConsistencyTask:
                 "pick": torch.rand((), generator=g), "fresh": torch.tensor((self._drawn - 1) % self.cfg.replay == 0)}
 
     def _judged_draw(self, rng: np.random.Generator) -> np.ndarray | None:
-        """adversarial_rows judged motions for a fresh batch's first rows, drawn as the class balance
-        draws them (None: none asked)."""
-        k = self.cfg.adversarial_rows
-        if not k:
+        """adversarial_rows judged motions for a fresh batch's first rows (None: none asked)."""
+        if self._judged_index is None:
             return None
-        judged = np.flatnonzero(self._judged_motions)
-        w = self.data.draw_weights
-        p = None if w is None else w[judged] / w[judged].sum()
-        return judged[rng.choice(len(judged), size=k, p=p)]
+        return self._judged_index[rng.choice(len(self._judged_index), size=self.cfg.adversarial_rows,
+                                             p=self._judged_p)]
 
     def batch(self, rng: np.random.Generator) -> dict:
         replay = self._replayed(rng)
