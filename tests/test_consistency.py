@@ -409,6 +409,36 @@ def test_judged_actions_can_take_rows_of_every_solved_batch(tiny_model, tiny_dat
         assert words in capsys.readouterr().err
 
 
+def test_distillation_can_cross_captions_and_reads_them_with_the_text_encoder(tiny_model, tiny_dataset, tmp_path,
+                                                                            capsys):
+    """caption_crossover gives rows wordings no clip has, crossed from two rows' captions, each with the
+    text encoder's own features of it (the teacher solves them like any other), and trains on them;
+    with the lcd target, whose rows are the captures themselves, it is refused."""
+    from salad.cli import main
+    from salad.config import load_toml
+    from salad.training.configs import ConsistencyTrainConfig
+    from salad.training.consistency_task import ConsistencyTask
+
+    extra = 'target = "{}"\nteacher_steps = 6\nreplay = 1\ncaption_crossover = 1.0\n'
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=2, extra=extra.format("trajectory"))
+    task = ConsistencyTask(load_toml(ConsistencyTrainConfig, cfg), show_progress=False)
+    known = {c for cs in task.data.captions for c in cs}
+    rng, new = np.random.default_rng(0), 0
+    for _ in range(6):
+        b = task.batch(rng)
+        new += sum(c not in known for c in b["captions"])
+        f = task.data.text_encoder.encode(b["captions"])
+        n = f.tokens.shape[1]
+        assert torch.equal(b["text_mask"][:, :n], f.mask) and not b["text_mask"][:, n:].any()
+        assert torch.allclose(b["text"][:, :n], f.tokens, atol=0.02 * float(f.tokens.abs().max()))
+        assert torch.allclose(b["pooled"], f.pooled, atol=1e-5)
+    assert new >= 6, "crossed wordings in the batches"
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run")]) == 0
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra.format("lcd"))
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "bad")]) == 2
+    assert 'caption_crossover must be 0 with target = "lcd"' in capsys.readouterr().err
+
+
 def test_the_teachers_stochastic_samples_can_be_the_discriminators_real_side(tiny_model):
     """adversarial_real = "teacher": the real side of a solved batch is the teacher sampled as the
     studio samples it (SDE-DPM-Solver++, guided at the row's scale, rescaled and cut off alike), from

@@ -43,6 +43,18 @@ def test_left_right_swapping():
     assert set(cap.MIRRORED_CONTENT) == {k for k in cap.CONTENT_PHRASES if "left" in k or "right" in k}
 
 
+def test_crossover_joins_two_captions_at_a_word_they_share():
+    rng = np.random.default_rng(0)
+    assert cap.crossover("a man kicks with one leg", "a guy waves with his right hand", rng) == \
+        "a man kicks with his right hand"
+    # neither the first word, an article, nor a cut that gives back a caption: with none left, the first is kept
+    assert cap.crossover("a person bows", "a person waves", rng) == "a person bows"
+    assert cap.crossover("the man bows low", "a lady waves the hand", rng) == "the man bows low"
+    made = {cap.crossover("a man kicks with one leg and then stops", "a guy waves with his hand and then bows", rng)
+            for _ in range(40)}
+    assert made == {"a man kicks with his hand and then bows", "a man kicks with one leg and then bows"}
+
+
 def test_caption_lines_parse_back():
     line = cap.caption_line("a person waves their left hand happily")
     c = parse_caption_line(line)

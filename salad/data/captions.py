@@ -226,6 +226,20 @@ def captions_for(content: str, style: str, key: str, n: int = 3, plain: bool = F
     return picked
 
 
+_ARTICLES = frozenset(("a", "an", "the"))
+
+
+def crossover(first: str, second: str, rng) -> str:
+    """`first` up to a word it shares with `second`, then `second` from that word on: a wording that
+    neither has, e.g. "a man kicks with one leg" x "a guy waves with his right hand" -> "a man kicks
+    with his right hand". Neither caption's first word, nor an article, is a cut, nor one that gives
+    back either caption; with none left, `first` as it is. rng: a numpy Generator (which wording)."""
+    a, b = first.split(), second.split()
+    made = {" ".join(a[:i] + b[j:]) for i, w in enumerate(a[1:], 1) if w.lower() not in _ARTICLES
+            for j, v in enumerate(b[1:], 1) if v.lower() == w.lower()} - {first, second}
+    return sorted(made)[int(rng.integers(len(made)))] if made else first
+
+
 _SWAPS = (("counterclockwise", "clockwise"), ("counter-clockwise", "clockwise"), ("left", "right"))
 
 

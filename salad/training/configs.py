@@ -228,6 +228,12 @@ class ConsistencyTrainConfig:
     # balance among them); 0: only those the batch happens to draw. A run solves one batch in `replay`
     # steps (nine in 100 steps at replay = 12), so otherwise whether they are judged at all is mostly the seed.
     adversarial_rows: int = 0
+    # the share of rows whose caption is crossed with another row's at a word both use (e.g. "a man kicks with
+    # one leg" x "a guy waves with his right hand" -> "a man kicks with his right hand"), so that the teacher's
+    # reading of wordings no clip is captioned with is distilled too: without it the student drifts from the
+    # teacher on paraphrases. Trajectory target only (its solves start from noise, so a crossed caption need
+    # not describe the row's capture); crossed rows are not judged by a discriminator of data.
+    caption_crossover: float = 0.0
     # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
 
@@ -260,3 +266,7 @@ class ConsistencyTrainConfig:
                                                                         or self.adversarial_max_clips)),
                 where, "adversarial_rows", "0 unless lambda_adv > 0 and adversarial_classes or adversarial_max_clips "
                 "names the judged actions", self.adversarial_rows)
+        require(0 <= self.caption_crossover <= 1, where, "caption_crossover", "in [0, 1]", self.caption_crossover)
+        require(not self.caption_crossover or self.target == "trajectory", where, "caption_crossover",
+                '0 with target = "lcd" (its rows are noised captures, which a crossed caption no longer describes)',
+                self.caption_crossover)

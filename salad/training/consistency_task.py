@@ -36,7 +36,8 @@ import torch.nn.functional as F
 from torch.func import functional_call
 
 from ..checkpoint import CheckpointError, load_state_strict
-from ..config import from_dict, to_dict, validate
+from ..config import ConfigError, from_dict, to_dict, validate
+from ..data.captions import crossover
 from ..diffusion.consistency import consistency_fn, grid_timesteps, sampler_timesteps
 from ..diffusion.sampling import cfg_combine, fresh_noise
 from ..diffusion.schedule import CONSISTENCY_GRID, DiffusionConfig, NoiseSchedule
@@ -312,6 +313,9 @@ class ConsistencyTask:
             vae=str(root / "vae"), text_encoder=tcfg["text_encoder"], text_dropout=0.0, optim=cfg.optim,
             auto_length_prob=cfg.auto_length_prob,
             posterior_noise=float(teacher_training.get("posterior_noise", 1.0))), show_progress=show_progress)
+        if cfg.caption_crossover and self.data.text_encoder is None:
+            raise ConfigError("caption_crossover encodes new captions, and a latent bundle (data.bundle) holds only "
+                              "its own captions' features: distil from data.root")
         self.schedule = self.data.schedule
         self.grid = grid_timesteps(self.schedule)
         student = _student_for(teacher, tcfg, cfg.student, vae_latent_checksums(root / "vae")) if cfg.student else None
@@ -360,6 +364,23 @@ class ConsistencyTask:
         return self._judged_index[rng.choice(len(self._judged_index), size=self.cfg.adversarial_rows,
                                              p=self._judged_p)]
 
+    def _cross_captions(self, b: dict, rng: np.random.Generator) -> None:
+        """caption_crossover of b's rows take their caption crossed with another row's (with its text
+        features); a discriminator of data no longer judges them, their capture not being what they say."""
+        given = b["captions"]
+        B = len(given)
+        if B < 2:
+            return
+        captions = list(given)
+        for r in np.flatnonzero(rng.random(B) < self.cfg.caption_crossover):
+            other = int(rng.integers(B - 1))
+            captions[r] = crossover(given[r], given[other + (other >= r)], rng)
+        b["captions"] = captions
+        b["text"], b["text_mask"], b["pooled"] = self.data.text_features(captions)
+        if self.cfg.lambda_adv > 0 and self.cfg.adversarial_real == "data":
+            kept = torch.tensor([c == g for c, g in zip(captions, given)])
+            b["adversarial_rows"] = kept & b.get("adversarial_rows", torch.ones(B, dtype=torch.bool))
+
     def batch(self, rng: np.random.Generator) -> dict:
         replay = self._replayed(rng)
         if replay is not None and not bool(replay["fresh"]):
@@ -369,6 +390,8 @@ class ConsistencyTask:
             b.update(replay)
         if self._judged_motions is not None:
             b["adversarial_rows"] = torch.from_numpy(self._judged_motions[b["rows"].numpy()])
+        if self.cfg.caption_crossover > 0:
+            self._cross_captions(b, rng)
         B = b["latents"].shape[0]
         g = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
         b["timesteps"] = self.grid[torch.randint(0, len(self.grid), (B,), generator=g)]

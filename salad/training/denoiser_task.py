@@ -201,7 +201,7 @@ class DenoiserTask:
                               f"({b.text_spec.get('dim')}-d); this config uses {cfg.text_encoder} with "
                               f"model.text_dim = {cfg.model.text_dim}")
         self.lengths, self.captions, self.content = b.lengths, b.captions, b.content
-        self.text, self.text_spec = b.text, b.text_spec
+        self.text, self.text_spec, self.text_encoder = b.text, b.text_spec, None
 
     # ------------------------------------------------------------ batches
     def _canvas(self, crops: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -274,9 +274,22 @@ class DenoiserTask:
         if self._learn is not None:
             extra["learn"] = torch.from_numpy(self._learn[idx])
         return {**extra, "rows": torch.from_numpy(idx), "latents": latents, "frame_mask": frame_mask, "text": text,
-                "text_mask": text_mask, "pooled": pooled, "auto": torch.full((B,), auto),
+                "text_mask": text_mask, "pooled": pooled, "captions": captions, "auto": torch.full((B,), auto),
                 "timesteps": torch.randint(0, self.schedule.config.train_steps, (B,), generator=g),
                 "noise": torch.randn(latents.shape, generator=g)}
+
+    def text_features(self, captions: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Tokens, mask and pooled features of captions as a batch carries them: the bank's, or, where
+        some are not training captions, the text encoder's (its tokens rounded to the bank's bf16)."""
+        if all(c in self.text.index for c in captions):
+            return self.text.batch(captions, TOKEN_BUCKET)
+        if self.text_encoder is None:
+            raise ConfigError("captions outside the training set need the text encoder, and a latent bundle "
+                              "holds only its own captions' features")
+        f = self.text_encoder.encode(list(captions))
+        pad = -f.tokens.shape[1] % TOKEN_BUCKET
+        tokens = F.pad(f.tokens, (0, 0, 0, pad)).to(torch.bfloat16).float()
+        return tokens.cpu(), F.pad(f.mask, (0, pad)).cpu(), f.pooled.float().cpu()
 
     def _dataset_latents(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, list[np.ndarray]]:
         """Scaled latents on the canvas of motions `idx` (posterior samples at posterior_noise), and
