@@ -230,9 +230,10 @@ class ConsistencyTrainConfig:
     adversarial_rows: int = 0
     # the share of rows whose caption is crossed with another row's at a word both use (e.g. "a man kicks with
     # one leg" x "a guy waves with his right hand" -> "a man kicks with his right hand"), so that the teacher's
-    # reading of wordings no clip is captioned with is distilled too: without it the student drifts from the
-    # teacher on paraphrases. Trajectory target only (its solves start from noise, so a crossed caption need
-    # not describe the row's capture); crossed rows are not judged by a discriminator of data.
+    # reading of wordings no clip is captioned with is distilled too, not only the training captions' (session 65:
+    # a 300-step fine-tune at 0.5 read two misread kick paraphrases as kicks more often, but kicked lower).
+    # Trajectory target only (its solves start from noise, so a crossed caption need not describe the row's
+    # capture); crossed rows are not judged by a discriminator of data.
     caption_crossover: float = 0.0
     # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
