@@ -403,10 +403,36 @@ def test_judged_actions_can_take_rows_of_every_solved_batch(tiny_model, tiny_dat
     rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert len(rows) == 4 and all(r["judged_rows"] >= 0.5 for r in rows), "2 rows of 4 at every step"
     for text, words in ((extra.format(judged, 5), "adversarial_rows must be in 0..optim.batch_size (4), got 5"),
-                        (extra.format("", 1), "adversarial_rows must be 0 unless lambda_adv > 0 and")):
+                        (extra.format("", 1), "adversarial_rows must be 0 unless adversarial_classes or")):
         cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=1, extra=text)
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "bad")]) == 2
         assert words in capsys.readouterr().err
+
+
+def test_named_actions_can_take_rows_of_every_solved_batch_with_no_discriminator(tiny_model, tiny_dataset, tmp_path):
+    """With lambda_adv = 0, adversarial_rows still puts the named actions' motions first in every solved
+    batch (more of their solves for the consistency loss), and nothing is judged."""
+    from salad.cli import main
+    from salad.config import load_toml
+    from salad.training.configs import ConsistencyTrainConfig
+    from salad.training.consistency_task import ConsistencyTask
+
+    root = labelled_copy(tiny_dataset, tmp_path, kicks=2)          # 2 kicks, 6 walks in train
+    extra = 'target = "trajectory"\nteacher_steps = 6\nreplay = 2\nadversarial_classes = ["kick"]\nadversarial_rows = 3\n'
+    cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=4, extra=extra)
+    task = ConsistencyTask(load_toml(ConsistencyTrainConfig, cfg), show_progress=False)
+    assert task.model.disc is None
+    kicks = np.array([caps == ["a person kicks"] for caps in task.data.captions])
+    rng, fresh = np.random.default_rng(0), 0
+    for _ in range(8):
+        b = task.batch(rng)
+        if "rows" in b:
+            fresh += 1
+            assert kicks[b["rows"][:3].numpy()].all() and "adversarial_rows" not in b
+    assert fresh == 4
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run")]) == 0
+    rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert len(rows) == 4 and all("judged_rows" not in r for r in rows)
 
 
 def test_distillation_can_cross_captions_and_reads_them_with_the_text_encoder(tiny_model, tiny_dataset, tmp_path,

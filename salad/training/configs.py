@@ -227,6 +227,8 @@ class ConsistencyTrainConfig:
     # rows of every batch the teacher solves given to those judged actions' motions (drawn by the class
     # balance among them); 0: only those the batch happens to draw. A run solves one batch in `replay`
     # steps (nine in 100 steps at replay = 12), so otherwise whether they are judged at all is mostly the seed.
+    # With lambda_adv = 0 nothing judges them: the rows only give the consistency loss more of those
+    # actions' solves (a fresh distillation sees a few hundred solved kicks in 2,000 steps otherwise).
     adversarial_rows: int = 0
     # the share of rows whose caption is crossed with another row's at a word both use (e.g. "a man kicks with
     # one leg" x "a guy waves with his right hand" -> "a man kicks with his right hand"), so that the teacher's
@@ -263,10 +265,9 @@ class ConsistencyTrainConfig:
                 "empty when adversarial_max_clips picks the judged rows", self.adversarial_classes)
         require(0 <= self.adversarial_rows <= self.optim.batch_size, where, "adversarial_rows",
                 f"in 0..optim.batch_size ({self.optim.batch_size})", self.adversarial_rows)
-        require(not self.adversarial_rows or (self.lambda_adv > 0 and (self.adversarial_classes
-                                                                        or self.adversarial_max_clips)),
-                where, "adversarial_rows", "0 unless lambda_adv > 0 and adversarial_classes or adversarial_max_clips "
-                "names the judged actions", self.adversarial_rows)
+        require(not self.adversarial_rows or self.adversarial_classes or self.adversarial_max_clips,
+                where, "adversarial_rows", "0 unless adversarial_classes or adversarial_max_clips names the actions",
+                self.adversarial_rows)
         require(0 <= self.caption_crossover <= 1, where, "caption_crossover", "in [0, 1]", self.caption_crossover)
         require(not self.caption_crossover or self.target == "trajectory", where, "caption_crossover",
                 '0 with target = "lcd" (its rows are noised captures, which a crossed caption no longer describes)',

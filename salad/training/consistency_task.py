@@ -331,9 +331,10 @@ class ConsistencyTask:
                 frame_dim = c.parts * c.latent_dim
             disc = PromptDiscriminator(frame_dim, c.text_dim, cfg.discriminator)
         self._judged_motions = None
-        if cfg.lambda_adv > 0 and cfg.adversarial_max_clips > 0:
+        named = cfg.lambda_adv > 0 or cfg.adversarial_rows > 0     # the actions are judged, or only given rows
+        if named and cfg.adversarial_max_clips > 0:
             self._judged_motions = self.data.rare_motions(cfg.adversarial_max_clips, "adversarial", "unjudged")
-        elif cfg.lambda_adv > 0 and cfg.adversarial_classes:       # the config keeps the two exclusive
+        elif named and cfg.adversarial_classes:                    # the config keeps the two exclusive
             self._judged_motions = self.data.class_motions(cfg.adversarial_classes, "adversarial")
         # the motions adversarial_rows draws from, and how often each (the class balance among them)
         self._judged_index = self._judged_p = None
@@ -388,7 +389,7 @@ class ConsistencyTask:
         b = self.data.batch(rng, self._judged_draw(rng))
         if replay is not None:
             b.update(replay)
-        if self._judged_motions is not None:
+        if self._judged_motions is not None and self.cfg.lambda_adv > 0:
             b["adversarial_rows"] = torch.from_numpy(self._judged_motions[b["rows"].numpy()])
         if self.cfg.caption_crossover > 0:
             self._cross_captions(b, rng)
