@@ -14,6 +14,16 @@ class ConfigError(ValueError):
     pass
 
 
+# settings that were renamed: a config or a run's stored state that uses the old name is told the new one
+# (configs) or read under it (resuming, salad.training.loop)
+RENAMED = {"adversarial_max_clips": "focus_max_clips", "adversarial_classes": "focus_classes",
+           "adversarial_rows": "focus_rows"}
+
+
+def renamed_keys(data: dict[str, Any]) -> dict[str, Any]:
+    return {RENAMED.get(k, k): v for k, v in data.items()}
+
+
 def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
     """Build dataclass `cls` from a dict; unknown keys and wrong types are errors."""
     if not isinstance(data, dict):
@@ -21,6 +31,9 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - set(fields))
+    renamed = [f"{key} is now {RENAMED[key]}" for key in unknown if RENAMED.get(key) in fields]
+    if renamed:
+        raise ConfigError(f"{where}: renamed key(s): {'; '.join(renamed)}")
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(fields)}")
     kwargs = {}

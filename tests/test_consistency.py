@@ -287,7 +287,7 @@ def test_the_adversarial_term_is_held_at_its_share_of_the_students_gradient(tiny
 
 
 def test_the_discriminator_can_judge_chosen_rows_alone(tiny_model):
-    """With adversarial_rows, the other rows get no adversarial gradient and their real side does not
+    """With adversarial_rows (the rows in focus), the other rows get no adversarial gradient and their real side does not
     reach the discriminator; the judged rows' share is lambda_adv of their own consistency gradient."""
     m, teacher, pred, target, real = _adversarial_case(tiny_model, 0.5, seed=1)
     c = teacher.config
@@ -312,7 +312,7 @@ def test_the_discriminator_can_judge_chosen_rows_alone(tiny_model):
 
 
 def test_distillation_can_judge_the_rare_actions_alone(tiny_model, tiny_dataset, tmp_path, capsys):
-    """adversarial_max_clips marks the rows of content classes with at most that many training clips,
+    """focus_max_clips marks the rows of content classes with at most that many training clips,
     replayed solves keep their marks, and a count that splits no class is refused."""
     from salad.cli import main
     from salad.config import load_toml
@@ -320,7 +320,7 @@ def test_distillation_can_judge_the_rare_actions_alone(tiny_model, tiny_dataset,
     from salad.training.consistency_task import ConsistencyTask
 
     root = labelled_copy(tiny_dataset, tmp_path, kicks=2)          # 2 kicks, 6 walks in train
-    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nadversarial_max_clips = {}\n'
+    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nfocus_max_clips = {}\n'
              '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
     cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=4, extra=extra.format(2))
     task = ConsistencyTask(load_toml(ConsistencyTrainConfig, cfg), show_progress=False)
@@ -337,25 +337,25 @@ def test_distillation_can_judge_the_rare_actions_alone(tiny_model, tiny_dataset,
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
     logs = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert all(0.0 <= r["judged_rows"] <= 1.0 for r in logs)
-    for clips, words in ((1, "every content class unjudged"), (6, "no content class unjudged")):
+    for clips, words in ((1, "every content class out of focus"), (6, "no content class out of focus")):
         cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=1, extra=extra.format(clips))
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / f"r{clips}")]) == 2
-        assert f"adversarial_max_clips = {clips} leaves {words}" in capsys.readouterr().err
+        assert f"focus_max_clips = {clips} leaves {words}" in capsys.readouterr().err
     cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra.format(2))
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "unlabelled")]) == 2
-    assert "adversarial picks actions by their content class, and this data has no content labels" in capsys.readouterr().err
+    assert "focus picks actions by their content class, and this data has no content labels" in capsys.readouterr().err
 
 
 def test_distillation_can_judge_named_actions_alone(tiny_model, tiny_dataset, tmp_path, capsys):
-    """adversarial_classes marks the rows of the named content classes, whatever their counts; a class the
-    data lacks is refused with the ones it has, and so is naming classes beside adversarial_max_clips."""
+    """focus_classes marks the rows of the named content classes, whatever their counts; a class the
+    data lacks is refused with the ones it has, and so is naming classes beside focus_max_clips."""
     from salad.cli import main
     from salad.config import load_toml
     from salad.training.configs import ConsistencyTrainConfig
     from salad.training.consistency_task import ConsistencyTask
 
     root = labelled_copy(tiny_dataset, tmp_path, kicks=2)          # 2 kicks, 6 walks in train
-    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nadversarial_classes = {}\n'
+    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\nfocus_classes = {}\n'
              '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
     for classes in (["walk"], ["kick"]):
         cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=2, extra=extra.format(json.dumps(classes)))
@@ -367,16 +367,16 @@ def test_distillation_can_judge_named_actions_alone(tiny_model, tiny_dataset, tm
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run")]) == 0
     cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=1, extra=extra.format('["kick", "slash"]'))
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r1")]) == 2
-    assert "adversarial_classes names ['slash'], which no training motion has; the content classes are kick, walk" \
+    assert "focus_classes names ['slash'], which no training motion has; the content classes are kick, walk" \
         in capsys.readouterr().err
     cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=1,
-                           extra=extra.format('["kick"]').replace("lambda_adv", "adversarial_max_clips = 2\nlambda_adv"))
+                           extra=extra.format('["kick"]').replace("lambda_adv", "focus_max_clips = 2\nlambda_adv"))
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r2")]) == 2
-    assert "adversarial_classes must be empty when adversarial_max_clips picks the judged rows" in capsys.readouterr().err
+    assert "focus_classes must be empty when focus_max_clips picks the actions" in capsys.readouterr().err
 
 
 def test_judged_actions_can_take_rows_of_every_solved_batch(tiny_model, tiny_dataset, tmp_path, capsys):
-    """adversarial_rows puts that many of the judged actions' motions first in every batch the teacher
+    """focus_rows puts that many of the judged actions' motions first in every batch the teacher
     solves, and the replays train on those solves, so every step judges them whatever the draw; it
     needs judged actions and a batch to fit in."""
     from salad.cli import main
@@ -385,9 +385,9 @@ def test_judged_actions_can_take_rows_of_every_solved_batch(tiny_model, tiny_dat
     from salad.training.consistency_task import ConsistencyTask
 
     root = labelled_copy(tiny_dataset, tmp_path, kicks=2)          # 2 kicks, 6 walks in train
-    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\n{}adversarial_rows = {}\n'
+    extra = ('target = "trajectory"\nteacher_steps = 6\nreplay = 2\nlambda_adv = 0.5\n{}focus_rows = {}\n'
              '[discriminator]\nwidth = 8\nlevels = 1\nblocks_per_level = 1')
-    judged = 'adversarial_classes = ["kick"]\n'
+    judged = 'focus_classes = ["kick"]\n'
     cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=4, extra=extra.format(judged, 2))
     task = ConsistencyTask(load_toml(ConsistencyTrainConfig, cfg), show_progress=False)
     kicks = np.array([caps == ["a person kicks"] for caps in task.data.captions])
@@ -402,15 +402,16 @@ def test_judged_actions_can_take_rows_of_every_solved_batch(tiny_model, tiny_dat
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run")]) == 0
     rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert len(rows) == 4 and all(r["judged_rows"] >= 0.5 for r in rows), "2 rows of 4 at every step"
-    for text, words in ((extra.format(judged, 5), "adversarial_rows must be in 0..optim.batch_size (4), got 5"),
-                        (extra.format("", 1), "adversarial_rows must be 0 unless adversarial_classes or")):
+    for text, words in ((extra.format(judged, 5), "focus_rows must be in 0..optim.batch_size (4), got 5"),
+                        (extra.format("", 1), "focus_rows must be 0 unless focus_classes or")):
         cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=1, extra=text)
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "bad")]) == 2
         assert words in capsys.readouterr().err
 
 
-def test_named_actions_can_take_rows_of_every_solved_batch_with_no_discriminator(tiny_model, tiny_dataset, tmp_path):
-    """With lambda_adv = 0, adversarial_rows still puts the named actions' motions first in every solved
+def test_named_actions_can_take_rows_of_every_solved_batch_with_no_discriminator(tiny_model, tiny_dataset, tmp_path,
+                                                                               capsys):
+    """With lambda_adv = 0, focus_rows still puts the named actions' motions first in every solved
     batch (more of their solves for the consistency loss), and nothing is judged."""
     from salad.cli import main
     from salad.config import load_toml
@@ -418,7 +419,7 @@ def test_named_actions_can_take_rows_of_every_solved_batch_with_no_discriminator
     from salad.training.consistency_task import ConsistencyTask
 
     root = labelled_copy(tiny_dataset, tmp_path, kicks=2)          # 2 kicks, 6 walks in train
-    extra = 'target = "trajectory"\nteacher_steps = 6\nreplay = 2\nadversarial_classes = ["kick"]\nadversarial_rows = 3\n'
+    extra = 'target = "trajectory"\nteacher_steps = 6\nreplay = 2\nfocus_classes = ["kick"]\nfocus_rows = 3\n'
     cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=4, extra=extra)
     task = ConsistencyTask(load_toml(ConsistencyTrainConfig, cfg), show_progress=False)
     assert task.model.disc is None
@@ -433,6 +434,26 @@ def test_named_actions_can_take_rows_of_every_solved_batch_with_no_discriminator
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run")]) == 0
     rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert len(rows) == 4 and all("judged_rows" not in r for r in rows)
+
+    # the settings were called adversarial_* before: a config with the old names is told the new ones, and a
+    # run whose state stored them resumes
+    old = {"focus_classes": "adversarial_classes", "focus_rows": "adversarial_rows",
+           "focus_max_clips": "adversarial_max_clips"}
+    stale = tmp_path / "old.toml"
+    stale.write_text(cfg.read_text().replace("focus_classes", "adversarial_classes").replace("focus_rows",
+                                                                                            "adversarial_rows"))
+    assert main(["train", "consistency", "--config", str(stale), "--out-dir", str(tmp_path / "stale")]) == 2
+    assert ("renamed key(s): adversarial_classes is now focus_classes; adversarial_rows is now focus_rows"
+            in capsys.readouterr().err)
+    state = tmp_path / "run" / "state" / "config.json"
+    doc = json.loads(state.read_text())
+    doc["config"] = {old.get(k, k): v for k, v in doc["config"].items()}
+    assert "adversarial_rows" in doc["config"]
+    state.write_text(json.dumps(doc))
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run"),
+                 "--max-steps", "6"]) == 0
+    assert "resumed" in capsys.readouterr().err
+    assert len((tmp_path / "run" / "log.jsonl").read_text().splitlines()) == 6
 
 
 def test_distillation_can_cross_captions_and_reads_them_with_the_text_encoder(tiny_model, tiny_dataset, tmp_path,
@@ -554,7 +575,7 @@ def test_distillation_config_errors_are_clear(tiny_model, tiny_dataset, tmp_path
                            ('adversarial_space = "pixels"', "adversarial_space must be latents or motion"),
                            ('adversarial_real = "teacher"', 'adversarial_real must be "data" with target = "lcd"'),
                            ('adversarial_real = "studio"', "adversarial_real must be one of data, teacher"),
-                           ("adversarial_max_clips = -1", "adversarial_max_clips must be >= 0")):
+                           ("focus_max_clips = -1", "focus_max_clips must be >= 0")):
         cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra)
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
         assert message in capsys.readouterr().err

@@ -217,19 +217,19 @@ class ConsistencyTrainConfig:
     # samples (SDE-DPM-Solver++ on teacher_steps) of the batch's prompts (trajectory target only; one
     # more teacher sampling per solve)
     adversarial_real: str = "data"
-    # which rows it judges: 0, every row; n > 0, only the rows of content classes with at most n training
-    # clips (the rare actions, whose motions the plain student tames most), so the common classes keep
-    # what the consistency loss gives them
-    adversarial_max_clips: int = 0
-    # or, instead, only the rows of these content classes (e.g. ["kick", "slash"]: the rare actions the
-    # student still tames, leaving the others' rows to the consistency loss)
-    adversarial_classes: list[str] = field(default_factory=list)
-    # rows of every batch the teacher solves given to those judged actions' motions (drawn by the class
-    # balance among them); 0: only those the batch happens to draw. A run solves one batch in `replay`
-    # steps (nine in 100 steps at replay = 12), so otherwise whether they are judged at all is mostly the seed.
-    # With lambda_adv = 0 nothing judges them: the rows only give the consistency loss more of those
-    # actions' solves (a fresh distillation sees a few hundred solved kicks in 2,000 steps otherwise).
-    adversarial_rows: int = 0
+    # the actions in focus: the discriminator judges their rows alone (lambda_adv > 0) and focus_rows gives
+    # them rows of every solved batch. 0: no focus (every row judged); n > 0: the content classes with at most
+    # n training clips (the rare actions, whose motions the plain student tames most), so the common classes
+    # keep what the consistency loss gives them
+    focus_max_clips: int = 0
+    # or, instead, these content classes (e.g. ["kick", "slash"]: the rare actions the student still tames)
+    focus_classes: list[str] = field(default_factory=list)
+    # rows of every batch the teacher solves given to the actions in focus (drawn by the class balance among
+    # them); 0: only those the batch happens to draw. A run solves one batch in `replay` steps (nine in 100
+    # steps at replay = 12), so otherwise how many of them are judged is mostly the seed. With lambda_adv = 0
+    # nothing judges them: the rows only give the consistency loss more of those actions' solves (a fresh
+    # distillation sees a few hundred solved kicks in 2,000 steps otherwise).
+    focus_rows: int = 0
     # the share of rows whose caption is crossed with another row's at a word both use (e.g. "a man kicks with
     # one leg" x "a guy waves with his right hand" -> "a man kicks with his right hand"), so that the teacher's
     # reading of wordings no clip is captioned with is distilled too, not only the training captions' (session 65:
@@ -260,14 +260,14 @@ class ConsistencyTrainConfig:
                 f"one of {', '.join(ADVERSARIAL_REAL)}", self.adversarial_real)
         require(self.adversarial_real == "data" or self.target == "trajectory", where, "adversarial_real",
                 '"data" with target = "lcd" (the teacher\'s samples come with its solves)', self.adversarial_real)
-        require(self.adversarial_max_clips >= 0, where, "adversarial_max_clips", ">= 0", self.adversarial_max_clips)
-        require(not (self.adversarial_classes and self.adversarial_max_clips), where, "adversarial_classes",
-                "empty when adversarial_max_clips picks the judged rows", self.adversarial_classes)
-        require(0 <= self.adversarial_rows <= self.optim.batch_size, where, "adversarial_rows",
-                f"in 0..optim.batch_size ({self.optim.batch_size})", self.adversarial_rows)
-        require(not self.adversarial_rows or self.adversarial_classes or self.adversarial_max_clips,
-                where, "adversarial_rows", "0 unless adversarial_classes or adversarial_max_clips names the actions",
-                self.adversarial_rows)
+        require(self.focus_max_clips >= 0, where, "focus_max_clips", ">= 0", self.focus_max_clips)
+        require(not (self.focus_classes and self.focus_max_clips), where, "focus_classes",
+                "empty when focus_max_clips picks the actions", self.focus_classes)
+        require(0 <= self.focus_rows <= self.optim.batch_size, where, "focus_rows",
+                f"in 0..optim.batch_size ({self.optim.batch_size})", self.focus_rows)
+        require(not self.focus_rows or self.focus_classes or self.focus_max_clips,
+                where, "focus_rows", "0 unless focus_classes or focus_max_clips names the actions",
+                self.focus_rows)
         require(0 <= self.caption_crossover <= 1, where, "caption_crossover", "in [0, 1]", self.caption_crossover)
         require(not self.caption_crossover or self.target == "trajectory", where, "caption_crossover",
                 '0 with target = "lcd" (its rows are noised captures, which a crossed caption no longer describes)',

@@ -20,8 +20,8 @@ kicks). With lambda_adv > 0 a discriminator conditioned on the prompt also judge
 clean estimates against the real latents of the same batch (or, with adversarial_real = "teacher",
 the teacher's own stochastic samples of the same prompts and lengths), or both decoded by the frozen
 VAE with adversarial_space = "motion", where the root's velocity is a channel of its own; the
-student is pushed towards them. adversarial_max_clips > 0 has it judge the rare actions' rows alone,
-adversarial_classes those of the named actions.
+student is pushed towards them. focus_max_clips > 0 has it judge the rare actions' rows alone,
+focus_classes those of the named actions; focus_rows gives those actions rows of every solved batch.
 """
 from __future__ import annotations
 
@@ -330,18 +330,18 @@ class ConsistencyTask:
             else:
                 frame_dim = c.parts * c.latent_dim
             disc = PromptDiscriminator(frame_dim, c.text_dim, cfg.discriminator)
-        self._judged_motions = None
-        named = cfg.lambda_adv > 0 or cfg.adversarial_rows > 0     # the actions are judged, or only given rows
-        if named and cfg.adversarial_max_clips > 0:
-            self._judged_motions = self.data.rare_motions(cfg.adversarial_max_clips, "adversarial", "unjudged")
-        elif named and cfg.adversarial_classes:                    # the config keeps the two exclusive
-            self._judged_motions = self.data.class_motions(cfg.adversarial_classes, "adversarial")
-        # the motions adversarial_rows draws from, and how often each (the class balance among them)
-        self._judged_index = self._judged_p = None
-        if cfg.adversarial_rows:
-            self._judged_index = np.flatnonzero(self._judged_motions)
+        self._focus_motions = None
+        focused = cfg.lambda_adv > 0 or cfg.focus_rows > 0   # the actions are judged, or only given rows
+        if focused and cfg.focus_max_clips > 0:
+            self._focus_motions = self.data.rare_motions(cfg.focus_max_clips, "focus", "out of focus")
+        elif focused and cfg.focus_classes:                  # the config keeps the two exclusive
+            self._focus_motions = self.data.class_motions(cfg.focus_classes, "focus")
+        # the motions focus_rows draws from, and how often each (the class balance among them)
+        self._focus_index = self._focus_p = None
+        if cfg.focus_rows:
+            self._focus_index = np.flatnonzero(self._focus_motions)
             w = self.data.draw_weights
-            self._judged_p = None if w is None else w[self._judged_index] / w[self._judged_index].sum()
+            self._focus_p = None if w is None else w[self._focus_index] / w[self._focus_index].sum()
         self.model = ConsistencyTraining(teacher, self.schedule, cfg.target_decay, cfg.huber_c, cfg.target,
                                          cfg.teacher_steps, cfg.replay_buffer, cfg.cfg_rescale, cfg.cfg_cutoff,
                                          student, disc, cfg.lambda_adv, decoder, self.data.latent_scale,
@@ -358,12 +358,12 @@ class ConsistencyTask:
         return {"point": torch.randint(0, len(self.model.points), (B,), generator=g),
                 "pick": torch.rand((), generator=g), "fresh": torch.tensor((self._drawn - 1) % self.cfg.replay == 0)}
 
-    def _judged_draw(self, rng: np.random.Generator) -> np.ndarray | None:
-        """adversarial_rows judged motions for a fresh batch's first rows (None: none asked)."""
-        if self._judged_index is None:
+    def _focus_draw(self, rng: np.random.Generator) -> np.ndarray | None:
+        """focus_rows motions of the actions in focus for a fresh batch's first rows (None: none asked)."""
+        if self._focus_index is None:
             return None
-        return self._judged_index[rng.choice(len(self._judged_index), size=self.cfg.adversarial_rows,
-                                             p=self._judged_p)]
+        return self._focus_index[rng.choice(len(self._focus_index), size=self.cfg.focus_rows,
+                                             p=self._focus_p)]
 
     def _cross_captions(self, b: dict, rng: np.random.Generator) -> None:
         """caption_crossover of b's rows take their caption crossed with another row's (with its text
@@ -386,11 +386,11 @@ class ConsistencyTask:
         replay = self._replayed(rng)
         if replay is not None and not bool(replay["fresh"]):
             return replay
-        b = self.data.batch(rng, self._judged_draw(rng))
+        b = self.data.batch(rng, self._focus_draw(rng))
         if replay is not None:
             b.update(replay)
-        if self._judged_motions is not None and self.cfg.lambda_adv > 0:
-            b["adversarial_rows"] = torch.from_numpy(self._judged_motions[b["rows"].numpy()])
+        if self._focus_motions is not None and self.cfg.lambda_adv > 0:
+            b["adversarial_rows"] = torch.from_numpy(self._focus_motions[b["rows"].numpy()])
         if self.cfg.caption_crossover > 0:
             self._cross_captions(b, rng)
         B = b["latents"].shape[0]

@@ -21,7 +21,7 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, recover_checkpoint, save_checkpoint
-from ..config import validate
+from ..config import renamed_keys, validate
 from ..files import atomic_write_text
 from ..precision import bf16_supported, resolve_device, to_device
 from .configs import OptimConfig, RunConfig
@@ -206,7 +206,7 @@ class Trainer:
             return cfg
 
         mine = comparable(json.loads(json.dumps(self.task.config_dict())))
-        theirs = doc["config"]
+        theirs = renamed_keys(doc["config"])
         cfg = getattr(self.task, "cfg", None)
         if dataclasses.is_dataclass(cfg):
             theirs = _with_defaults(theirs, json.loads(json.dumps(dataclasses.asdict(type(cfg)()))))
