@@ -101,3 +101,23 @@ def test_averaging_refuses_what_cannot_correspond(tiny_student, two_students, tm
     assert not out.exists()
     assert main(["average", str(a), str(tmp_path / "missing"), "--out", str(out)]) == 2
     assert not out.exists()
+
+
+def test_integer_tensors_are_kept_when_they_agree_and_refused_when_they_differ(two_students, tmp_path):
+    from salad.training.average import average_checkpoints
+
+    def with_counter(src, value, where):
+        doc, parts = load_checkpoint(src, kind="denoiser")
+        parts["denoiser"]["steps_seen"] = torch.tensor([value], dtype=torch.int64)
+        save_checkpoint(where, "denoiser", doc["config"], parts, doc["meta"])
+        return where
+
+    a, b = two_students
+    a7, b7 = with_counter(a, 7, tmp_path / "a7"), with_counter(b, 7, tmp_path / "b7")
+    b8 = with_counter(b, 8, tmp_path / "b8")
+    _, parts = load_checkpoint(average_checkpoints([a7, b7], [0.5, 0.5], tmp_path / "avg"), kind="denoiser")
+    kept = parts["denoiser"]["steps_seen"]
+    assert kept.dtype == torch.int64 and kept.tolist() == [7]
+    with pytest.raises(ValueError, match="denoiser/steps_seen: this integer tensor differs"):
+        average_checkpoints([a7, b8], [0.5, 0.5], tmp_path / "refused")
+    assert not (tmp_path / "refused").exists()
