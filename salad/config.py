@@ -24,6 +24,16 @@ def renamed_keys(data: dict[str, Any]) -> dict[str, Any]:
     return {RENAMED.get(k, k): v for k, v in data.items()}
 
 
+def training_identity(cfg: dict[str, Any]) -> dict[str, Any]:
+    """The part of a training config (as stored with a run or a model) that makes it another model: run settings
+    (threads, logging, checkpoint cadence) and a longer schedule (max_steps, to train on) do not; old key names
+    read as their new ones."""
+    cfg = {k: v for k, v in renamed_keys(cfg).items() if k != "run"}
+    if isinstance(cfg.get("optim"), dict):
+        cfg["optim"] = {k: v for k, v in cfg["optim"].items() if k != "max_steps"}
+    return cfg
+
+
 def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
     """Build dataclass `cls` from a dict; unknown keys and wrong types are errors."""
     if not isinstance(data, dict):

@@ -3,8 +3,11 @@ from argparse import Namespace
 from pathlib import Path
 
 import pytest
+import torch
 
+from salad.checkpoint import save_checkpoint
 from salad.config import ConfigError, apply_overrides, from_dict, load_toml
+from salad.eval.selection import best_score
 from salad.models.denoiser import Denoiser
 from salad.training.configs import DenoiserTrainConfig
 
@@ -105,3 +108,15 @@ def test_the_command_line_reports_a_bad_config_without_starting(tiny_dataset, tm
     assert main(["train", "vae", "--config", str(cfg)]) == 2
     assert "run.checkpoint_every must be >= 1, got 0" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_a_kept_best_score_counts_only_for_a_run_of_the_same_model(tmp_path):
+    stored = {"optim": {"lr": 1e-3, "max_steps": 100}, "run": {"threads": 2}, "adversarial_rows": 4}
+    save_checkpoint(tmp_path / "best", "classifier", {}, {"model": {"w": torch.zeros(1)}},
+                    {"val": {"score": 0.75}, "train_config": stored})
+    # run settings, a longer schedule and a key's new name make the same model: its score stands
+    same = {"optim": {"lr": 1e-3, "max_steps": 900}, "run": {"threads": 1}, "focus_rows": 4}
+    assert best_score(tmp_path / "best", "classifier", same) == 0.75
+    for other in ({**same, "optim": {"lr": 2e-3, "max_steps": 900}}, {**same, "focus_rows": 8}):
+        assert best_score(tmp_path / "best", "classifier", other) == float("-inf")
+    assert best_score(tmp_path / "missing", "classifier", same) == float("-inf")

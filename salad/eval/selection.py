@@ -5,14 +5,7 @@ import json
 from pathlib import Path
 
 from ..checkpoint import CheckpointError, read_checkpoint_config
-
-
-def _comparable(cfg: dict) -> dict:
-    # run settings and a longer schedule (resuming with more steps) do not make another model
-    cfg = {k: v for k, v in cfg.items() if k != "run"}
-    if isinstance(cfg.get("optim"), dict):
-        cfg["optim"] = {k: v for k, v in cfg["optim"].items() if k != "max_steps"}
-    return cfg
+from ..config import training_identity
 
 
 def best_score(path: Path, kind: str, config: dict) -> float:
@@ -24,7 +17,7 @@ def best_score(path: Path, kind: str, config: dict) -> float:
         return float("-inf")
     meta = doc.get("meta", {})
     if not isinstance(meta.get("train_config"), dict) or (
-            _comparable(meta["train_config"]) != _comparable(json.loads(json.dumps(config)))):
+            training_identity(meta["train_config"]) != training_identity(json.loads(json.dumps(config)))):
         return float("-inf")
     return float(meta.get("val", {}).get("score", float("-inf")))
 

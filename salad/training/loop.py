@@ -21,7 +21,7 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, recover_checkpoint, save_checkpoint
-from ..config import renamed_keys, validate
+from ..config import renamed_keys, training_identity, validate
 from ..files import atomic_write_text
 from ..precision import bf16_supported, resolve_device, to_device
 from .configs import OptimConfig, RunConfig
@@ -196,21 +196,13 @@ class Trainer:
         if not recover_checkpoint(path):
             return False
         doc, parts = load_checkpoint(path, kind=f"{self.task.kind}-train-state")
-        # Run settings (threads, logging, checkpoint cadence) may change between sessions, and
-        # anything that shapes the model, data or optimisation may not.
-        # max_steps may grow to train longer.
-        def comparable(cfg: dict) -> dict:
-            cfg = {k: v for k, v in cfg.items() if k != "run"}
-            if isinstance(cfg.get("optim"), dict):
-                cfg["optim"] = {k: v for k, v in cfg["optim"].items() if k != "max_steps"}
-            return cfg
-
-        mine = comparable(json.loads(json.dumps(self.task.config_dict())))
+        # anything that shapes the model, data or optimisation must match the run's (training_identity)
+        mine = training_identity(json.loads(json.dumps(self.task.config_dict())))
         theirs = renamed_keys(doc["config"])
         cfg = getattr(self.task, "cfg", None)
         if dataclasses.is_dataclass(cfg):
             theirs = _with_defaults(theirs, json.loads(json.dumps(dataclasses.asdict(type(cfg)()))))
-        theirs = comparable(theirs)
+        theirs = training_identity(theirs)
         differences = _differences(mine, theirs)
         if differences:
             changed = sorted({key.split(".")[0] for key, _, _ in differences})
