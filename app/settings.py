@@ -15,8 +15,9 @@ DEFAULT_PORT = 7860
 # 2-core CPU answers in reasonable time.
 MAX_STEPS = 200
 DEFAULT_STEPS = 50          # the teacher's (ddim, dpm); salad.pipeline.DEFAULT_STEPS has every sampler's
-# auto: the teacher in dpm-sde's steps for motions made from text (generate, edit; real-motion edits invert
-# with DDIM) and the distilled student, when the model has one, for guided control (app.studio.Studio says why)
+# auto: the distilled student where its checkpoint records it measured fit (the embedded one: motions from text and
+# guided control), else the teacher: dpm-sde's steps for text and edits, DDIM for control and real-motion edits
+# (app.studio.Studio says why)
 DEFAULT_SAMPLER = "auto"
 STUDIO_SAMPLERS = ("auto", "dpm-sde", "ddim", "dpm", "consistency")
 MAX_CFG = 15.0

@@ -152,7 +152,7 @@ class Studio:
         edit = control = sampler
         if sampler == "auto":
             # the student starts only the panels its checkpoint says it was measured fit for (the embedded
-            # one: guided control, not motions from text; assets/RESULTS.md, *The shipped pair*); otherwise text
+            # one: motions from text and guided control, not edits; assets/RESULTS.md, *Session 68*); otherwise text
             # and edits take the teacher in dpm-sde's 25 steps (DDIM-50's fidelity table in half the time) and
             # guided control DDIM, the one teacher sampler it guides. Edits are their own use: a student can
             # make motions as well as its teacher and still follow an edited prompt worse.

@@ -32,8 +32,8 @@ NO_STUDENT = "has no consistency student"
 @pytest.fixture(scope="module")
 def student_pipe(tiny_student):
     """Without the planted-feet refinement, so that a result's motion files come with its preview
-    (the studio's deferred refinement has its own test in test_app); recorded fit for guided control,
-    as the embedded student is, so the studio's default starts the Control panel on it."""
+    (the studio's deferred refinement has its own test in test_app); recorded fit for guided control
+    alone, so the studio's default starts the Control panel on it and the text panels on the teacher."""
     from salad.pipeline import load_pipeline
 
     pipe = load_pipeline(tiny_student)
@@ -186,8 +186,8 @@ def test_the_default_sampler_of_each_panel(student_pipe, pipe, tmp_path, caplog,
             assert p[steps]["maximum"] == 50
         assert p["real-seed"]["visible"] is True and p["real-inversion"]["interactive"] is False
         assert Studio(student_pipe, ws, sampler="consistency").control_sampler == "consistency"
-        # the default (auto): the student where its checkpoint records that it was measured fit (here, as
-        # for the embedded one: guided control), else the teacher, quietly, as where there is no student
+        # the default (auto): the student where its checkpoint records that it was measured fit (here:
+        # guided control), else the teacher, quietly, as where there is no student
         monkeypatch.delitem(student_pipe.student_info, "default_for")
         assert (Studio(student_pipe, ws).default_sampler, Studio(student_pipe, ws).control_sampler) == ("dpm-sde",
                                                                                                         "ddim")

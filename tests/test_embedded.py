@@ -25,11 +25,11 @@ def test_embedded_model_makes_a_plausible_motion_of_the_requested_length(pipe):
     assert bones.std() < 0.05, "bone lengths stay put"
 
 
-def test_embedded_student_is_recorded_fit_for_guided_control_only(pipe):
-    """It misses its fidelity bound on motions from text (assets/RESULTS.md, *The shipped pair*), so the studio's
-    text panels start on the teacher."""
+def test_embedded_student_is_recorded_fit_for_text_and_guided_control_not_edits(pipe):
+    """It meets its bounds on motions from text and guided control, but follows the held-out edits less well than
+    the teacher (assets/RESULTS.md, *Session 68*), so the studio's Edit and Real motion panels start on the teacher."""
     assert pipe.student is not None
-    assert pipe.student_preferred("control") and not pipe.student_preferred("text")
+    assert pipe.student_preferred("control") and pipe.student_preferred("text")
     assert not pipe.student_preferred("edit")
 
 
