@@ -305,12 +305,15 @@ def test_edit_this_motion_opens_the_edit_tab_on_the_generated_motion(studio_url,
         return t && t.offsetParent !== null && t.value === prompt; }""", arg=PROMPT)
     assert page.locator("#edit-target textarea").input_value() == PROMPT
     page.locator("#edit-tab").get_by_text("Sampling", exact=True).click()
-    steps = re.search(r"(\d+) SDE-DPM-Solver\+\+ steps", page.locator("#summary").inner_text()).group(1)
-    assert page.locator("#edit-steps input[type=number]").input_value() == steps
+    # the generation's sampler: the teacher's on the tiny model, the student's on the embedded one
+    sampled = re.search(r"(\d+) (SDE-DPM-Solver\+\+|consistency) steps?", page.locator("#summary").inner_text())
+    assert page.locator("#edit-steps input[type=number]").input_value() == sampled.group(1)
     assert page.locator("#edit-seed input").input_value() == "5"
     page.locator("#edit-target textarea").fill(PROMPT.replace("right", "left"))
     page.locator("#edit-button").click()
-    page.wait_for_function("() => document.querySelector('#edit-summary').innerText.includes('replayed')")
+    # a teacher's generation was recorded, so the edit replays its source branch; a student's is sampled again
+    said = "replayed" if sampled.group(2) != "consistency" else "Sampled both branches"
+    page.wait_for_function("(said) => document.querySelector('#edit-summary').innerText.includes(said)", arg=said)
     assert "“right” → “left”" in page.locator("#edit-summary").inner_text()
 
 
