@@ -7,6 +7,7 @@ from pathlib import Path
 
 # the panels read the edit's defaults and limits here
 from salad.editing.spec import DEFAULT_SELF_INJECT, DEFAULT_TAU, MAX_REWEIGHT, MIRROR_PARTS  # noqa: F401
+from salad.precision import BF16_MIN_ROWS
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 7860
@@ -43,15 +44,14 @@ DEFAULT_CLIPS = Path(__file__).resolve().parents[1] / "data" / "bandai-hml"
 CLIP_LAYOUT = ("new_joint_vecs", "texts", "test.txt")   # what a dataset build must hold to offer clips
 
 
-# How the model thread computes: "auto" runs bf16 autocast for forwards of two rows or more (a guided
-# step's paired rows, an edit's branches) on a CPU with native bf16 and fp32 otherwise; "fp32" and "bf16"
+# How the model thread computes: "auto" is the library's own rule (salad.precision.BF16_MIN_ROWS: bf16
+# autocast for forwards of two rows or more on a CPU with native bf16, fp32 otherwise); "fp32" and "bf16"
 # run every forward so. Measured on an AVX-512 BF16 EPYC whose bf16 matmuls ran 2.3x its fp32 ones
 # (session 52, in the studio, medians of 9 generations and 3 fresh edits per setting, interleaved):
 # sampling a generation 1.18 s fp32, 1.21 bf16, 1.10 auto; an edit's 1.91, 1.69, 1.56. One row at a time
 # (the student, unguided steps) bf16 was 10% slower. CPUs without native bf16 run fp32 whatever is asked.
 PRECISIONS = ("auto", "fp32", "bf16")
 MAX_RENDER_WORKERS = 7     # salad.render.workers.MAX_WORKERS
-AUTO_BF16_MIN_ROWS = 2
 
 
 @dataclass(frozen=True)
@@ -101,7 +101,7 @@ class Settings:
     @property
     def bf16_rows(self) -> tuple[bool, int]:
         """(bf16, bf16_min_rows) for load_pipeline."""
-        return (self.precision != "fp32", AUTO_BF16_MIN_ROWS if self.precision == "auto" else 1)
+        return (self.precision != "fp32", BF16_MIN_ROWS if self.precision == "auto" else 1)
 
 
 def default_host() -> str:

@@ -37,7 +37,7 @@ from .models.io import (load_consistency_student, load_denoiser, load_vae, partn
 from .models.text import TextEncoder, load_text_encoder
 from .models.vae import MotionVAE
 from .models.vocabulary import PromptCheck
-from .precision import bf16_supported, resolve_device
+from .precision import BF16_MIN_ROWS, bf16_supported, resolve_device
 from .progress import Progress, continued
 from .motion.cleanup import clean_motion
 from .motion.footlock import planted_mask
@@ -126,7 +126,7 @@ class _LengthLeftBand(Exception):
 class Pipeline:
     def __init__(self, vae: MotionVAE, normalizer: Normalizer, latent_scale: float, denoiser: Denoiser,
                  text_encoder: TextEncoder, schedule: NoiseSchedule, canvas_frames: int, bf16: bool = True,
-                 bf16_min_rows: int = 1, source: str = "", prompt_check: PromptCheck | None = None,
+                 bf16_min_rows: int = BF16_MIN_ROWS, source: str = "", prompt_check: PromptCheck | None = None,
                  device: str | torch.device = "auto",
                  student: Denoiser | None = None, student_info: dict | None = None):
         self.device = resolve_device(device)
@@ -898,7 +898,8 @@ def end_of_motion(activation: np.ndarray, threshold: float = ACTIVATION_THRESHOL
 
 
 def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text_encoder: str | dict | None = None,
-                  threads: int | None = None, device: str | torch.device = "auto", bf16_min_rows: int = 1) -> Pipeline:
+                  threads: int | None = None, device: str | torch.device = "auto",
+                  bf16_min_rows: int = BF16_MIN_ROWS) -> Pipeline:
     """Load a model directory holding `vae/` and `denoiser/` checkpoints. path=None means the
     embedded model in assets/model (or $SALAD_MODEL). device: "auto" (a CUDA GPU when torch sees
     one, else the CPU), "cpu", "cuda" or "cuda:N"; the denoiser, the VAE and the text encoder run there.

@@ -5,6 +5,12 @@ import torch
 
 DEVICE_CHOICES = "auto, cpu, cuda or cuda:N"
 
+# bf16 autocast pays off from this many rows a forward: for one row (the student's steps, an unguided
+# step) its weight casts cost more than its matmuls save. One row ran 10% slower than fp32 on session 52's
+# AVX-512 BF16 EPYC, and the student's four steps 88 against 67 ms on session 69's AMX Xeon; two rows (a
+# guided step's pair, an edit's branches) gain.
+BF16_MIN_ROWS = 2
+
 
 def resolve_device(name: str | torch.device | None = "auto") -> torch.device:
     """"auto" is a CUDA GPU when torch sees one, else the CPU. Asking for CUDA where there is

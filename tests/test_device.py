@@ -128,12 +128,13 @@ def test_bf16_follows_the_pipeline_device(pipe, monkeypatch):
 
 
 def test_bf16_from_a_number_of_rows(pipe, monkeypatch):
-    """bf16_min_rows = 2 (the studio's auto precision): a guided step's paired rows run in bf16, a single
-    row (the conditional rows alone, below the guidance cutoff) in fp32; the reports and the replay key say so."""
+    """bf16_min_rows = 2 (the default, and the studio's auto precision): a guided step's paired rows run in
+    bf16, a single row (the conditional rows alone, below the guidance cutoff) in fp32; the reports and the
+    replay key say so."""
     monkeypatch.setattr("salad.pipeline.bf16_supported", lambda d: True)
     parts = (pipe.vae, pipe.normalizer, pipe.latent_scale, pipe.denoiser, pipe.text_encoder, pipe.schedule,
              pipe.canvas_frames)
-    p = Pipeline(*parts, bf16=True, bf16_min_rows=2, device="cpu")
+    p = Pipeline(*parts, bf16=True, device="cpu")
     seen, net = [], p.denoiser
     monkeypatch.setattr(p, "_network_call", lambda name: lambda x, *a, **kw: (
         seen.append((x.shape[0], torch.is_autocast_enabled("cpu"))) or net(x, *a, **kw)))
@@ -144,7 +145,7 @@ def test_bf16_from_a_number_of_rows(pipe, monkeypatch):
     assert seen == [(2, True), (1, False)]
     assert p.precision == "bf16 autocast from 2 rows a forward"
     assert p.sampler_settings("ddim")["precision"] == p.precision
-    every = Pipeline(*parts, bf16=True, device="cpu")
+    every = Pipeline(*parts, bf16=True, bf16_min_rows=1, device="cpu")
     assert every.precision == "bf16 autocast"
     key = ("a person walks", None, 0, 10, 7.5, "ddim")
     assert p.source_key(*key) != every.source_key(*key), "a run recorded in one precision is not replayed in another"

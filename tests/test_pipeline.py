@@ -96,7 +96,7 @@ def test_generated_motions_can_go_through_the_vae_once_more_before_the_last_deco
     pipe.set_foot_refine(0)                 # the projection alone (the refinement after it has its own test)
     plain = pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3)
     assert plain.info["projections"] == pipe.projections == LATENT_PROJECTIONS == 0
-    precision = "bf16 autocast" if pipe.bf16 else "fp32"           # as the machine allows
+    precision = "bf16 autocast from 2 rows a forward" if pipe.bf16 else "fp32"      # as the machine allows
     assert pipe.sampler_settings("consistency") == {"projections": 0, "foot_refine": 0, "precision": precision}
     pipe.set_projections(1)
     projected = pipe.generate("a person walks forward", seconds=1.2, seed=3, steps=3)
