@@ -121,8 +121,7 @@ def add_parser(sub) -> None:
 
 def cmd_average(a) -> int:
     from ..training.average import average_checkpoints
-    weights = a.weights if a.weights is not None else [1.0 / len(a.checkpoints)] * len(a.checkpoints)
-    out = average_checkpoints(a.checkpoints, weights, a.out)
+    out = average_checkpoints(a.checkpoints, a.weights, a.out)
     print(f"average written to {out}")
     return 0
 

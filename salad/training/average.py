@@ -18,10 +18,13 @@ from ..checkpoint import load_checkpoint, save_checkpoint
 _SHARED_CONSISTENCY = ("teacher", "guidance", "grid_steps", "cfg_rescale", "cfg_cutoff")
 
 
-def average_checkpoints(paths: Sequence[str | Path], weights: Sequence[float], out: str | Path) -> Path:
-    """Write to `out` the checkpoint whose weights are sum_i weights[i] * (paths[i]'s weights)."""
+def average_checkpoints(paths: Sequence[str | Path], weights: Sequence[float] | None, out: str | Path) -> Path:
+    """Write to `out` the checkpoint whose weights are sum_i weights[i] * (paths[i]'s weights);
+    weights=None weighs the checkpoints equally."""
     if len(paths) < 2:
         raise ValueError("averaging needs at least two checkpoints")
+    if weights is None:
+        weights = [1.0 / len(paths)] * len(paths)
     if len(weights) != len(paths):
         raise ValueError(f"{len(paths)} checkpoints but {len(weights)} weights: give one weight per checkpoint")
     if any(not 0.0 <= w <= 1.0 for w in weights) or abs(sum(weights) - 1.0) > 1e-6:
