@@ -501,6 +501,7 @@ class Pipeline:
             deferred = self.foot_refine and feet == "defer"
             if self.foot_refine and feet == "refine":
                 f, info["foot_refine"] = self.plant_feet(z, f, feet_also)
+            f_decoded = f.detach().clone() if deferred else None
             f = self.normalizer.denormalize(f[0].float()).cpu().numpy()
             joints = features_to_joints(f)
             if foot_lock:
@@ -508,7 +509,7 @@ class Pipeline:
             m = Motion(joints=joints, features=f, text=texts[b], seed=seed, info=info,
                        warnings=self.prompt_warnings(texts[b]) if texts[b] else [])
             if deferred:
-                m.pending_refinement = partial(self._refined, m, z.detach().clone(), feet_also)
+                m.pending_refinement = partial(self._refined, m, z.detach().clone(), f_decoded, feet_also)
             out.append(m)
         return out
 
@@ -521,12 +522,13 @@ class Pipeline:
         return motion if motion.pending_refinement is None else motion.pending_refinement()
 
     @torch.no_grad()
-    def _refined(self, motion: Motion, z: torch.Tensor, also=None) -> Motion:
-        """The pending refinement of `motion`, decoded from latent z (VAE units) with also() in its loss."""
+    def _refined(self, motion: Motion, z: torch.Tensor, decoded: torch.Tensor, also=None) -> Motion:
+        """The pending refinement of `motion`, decoded from latent z (VAE units) as `decoded` (normalised
+        features), with also() in its loss. The decoder's own tensor, not motion.features normalised again:
+        the refinement's line search turns that round trip's rounding into millimetres."""
         if not self.foot_refine:
             return replace(motion, pending_refinement=None)
-        normalised = torch.from_numpy(self.normalizer.normalize(motion.features)).float()[None].to(self.device)
-        refined, report = self.plant_feet(z.to(self.device), normalised, also)
+        refined, report = self.plant_feet(z.to(self.device), decoded.to(self.device), also)
         features = self.normalizer.denormalize(refined[0].float()).cpu().numpy()
         joints = features_to_joints(features)
         info = dict(motion.info, foot_refine=report)

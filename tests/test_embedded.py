@@ -112,10 +112,10 @@ def test_planted_feet_refinement_stills_a_sliding_walk_at_its_speed(pipe):
     np.testing.assert_allclose(deferred.joints, raw.joints, atol=1e-5)
     later = pipe.refine_feet(deferred)
     assert later.pending_refinement is None
-    got, want = later.info["foot_refine"], refined.info["foot_refine"]
-    assert got["evaluations"] == want["evaluations"]      # the speeds agree to rounding, not bit for bit
-    np.testing.assert_allclose(got["planted_speed_mps"], want["planted_speed_mps"], atol=2e-3)
-    np.testing.assert_allclose(later.joints, refined.joints, atol=2e-3)
+    # the same refinement from the same decoder output, in the same process: what the studio's preview-first
+    # path delivers is what generate would have returned
+    assert later.info["foot_refine"] == refined.info["foot_refine"]
+    np.testing.assert_allclose(later.joints, refined.joints, atol=1e-6)
     assert pipe.refine_feet(later) is later, "refined once"
     before, after = refined.info["foot_refine"]["planted_speed_mps"]
     assert after < 0.6 * before, f"planted feet at {before:.2f} -> {after:.2f} m/s rms"
