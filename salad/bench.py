@@ -53,16 +53,18 @@ def _paper_pipeline(bf16: bool):
     torch.manual_seed(0)
     den = Denoiser(DenoiserConfig(text_dim=enc.dim))
     norm = Normalizer(np.zeros(263, np.float32), np.ones(263, np.float32))
-    return Pipeline(MotionVAE(), norm, 1.0, den, enc, NoiseSchedule(), canvas_frames=196, bf16=bf16, device="cpu")
+    return Pipeline(MotionVAE(), norm, 1.0, den, enc, NoiseSchedule(), canvas_frames=196, bf16=bf16,
+                    bf16_min_rows=1, device="cpu")
 
 
 def _load(model: str, bf16: bool):
     """On the CPU: the bench measures this machine's CPU (its matmul peak, threads and memory). It times
     the sampler and one decode: the latent projection and the planted-feet refinement after it are
-    post-processing (the refinement alone costs about a second per walk), off here."""
+    post-processing (the refinement alone costs about a second per walk), off here. A bf16 row runs
+    every forward in bf16, one-row forwards included (the library's default leaves those in fp32)."""
     from .pipeline import load_pipeline
     pipe = _paper_pipeline(bf16) if model == "paper" else load_pipeline(
-        None if model == "embedded" else model, bf16=bf16, device="cpu")
+        None if model == "embedded" else model, bf16=bf16, bf16_min_rows=1, device="cpu")
     pipe.set_projections(0)
     pipe.set_foot_refine(0)
     return pipe
