@@ -17,6 +17,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .dropout import dropout
+from .stacked import StackedLinears
 
 TEMPORAL, SKELETAL, CROSS = "temporal", "skeletal", "cross"
 # Over this many keys or fewer the explicit softmax(QK^T)V beats the fused kernel: on a 2-core CPU the
@@ -64,6 +65,7 @@ class Attention(nn.Module):
         self.to_v = nn.Linear(context_dim, dim)
         self.to_out = nn.Linear(dim, dim)
         self.controller: AttentionController | None = None
+        self._qkv = StackedLinears()
 
     def _heads(self, x: torch.Tensor) -> torch.Tensor:
         N, L, D = x.shape
@@ -73,8 +75,10 @@ class Attention(nn.Module):
                 key_mask: torch.Tensor | None = None, shape: tuple[int, int, int] = (0, 0, 0)) -> torch.Tensor:
         """x (N, Lq, D); context (N, Lk, Dc) or None for self-attention; key_mask (N, Lk)
         bool, True = may be attended. shape = (batch, frames, parts) for controllers."""
-        context = x if context is None else context
-        q, k, v = self._heads(self.to_q(x)), self._heads(self.to_k(context)), self._heads(self.to_v(context))
+        if context is None:
+            q, k, v = map(self._heads, self._qkv(x, [self.to_q, self.to_k, self.to_v]).chunk(3, dim=-1))
+        else:
+            q, k, v = self._heads(self.to_q(x)), self._heads(self.to_k(context)), self._heads(self.to_v(context))
         mask = None if key_mask is None else key_mask[:, None, None, :]
         p_drop = self.dropout if self.training else 0.0
         controller = self.controller

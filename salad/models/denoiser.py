@@ -15,9 +15,11 @@ from typing import Iterator
 
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from .attention import CROSS, SKELETAL, TEMPORAL, Attention
 from .dropout import Dropout
+from .stacked import StackedLinears
 
 # Guidance scales of a few units are spread over the sinusoid's frequencies like timesteps.
 GUIDANCE_EMBED_SCALE = 100.0
@@ -60,16 +62,19 @@ def sinusoid(positions: torch.Tensor, dim: int) -> torch.Tensor:
 
 
 class FiLM(nn.Module):
-    """out * (1 + scale) + shift, with scale and shift predicted from the timestep embedding."""
+    """Holds one sub-block's projection of the timestep embedding to (scale, shift); the block's
+    output becomes out * (1 + scale) + shift (`modulate`). The denoiser applies every FiLM's
+    projection in one product (Denoiser.modulations), so this module has no forward."""
 
     def __init__(self, dim: int):
         super().__init__()
         self.proj = nn.Sequential(nn.SiLU(), nn.Linear(dim, 2 * dim))
 
-    def forward(self, h: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
-        scale, shift = self.proj(emb).chunk(2, dim=-1)           # (B, D) each
-        extra = (1,) * (h.ndim - 2)
-        return h * (1 + scale.view(scale.shape[0], *extra, -1)) + shift.view(shift.shape[0], *extra, -1)
+
+def modulate(h: torch.Tensor, scale1: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+    """h (B, ..., D) * scale1 + shift, with scale1 = 1 + scale and shift (B, D) from one FiLM."""
+    extra = (1,) * (h.ndim - 2)
+    return torch.addcmul(shift.view(shift.shape[0], *extra, -1), h, scale1.view(scale1.shape[0], *extra, -1))
 
 
 class STLayer(nn.Module):
@@ -93,22 +98,30 @@ class STLayer(nn.Module):
     def attentions(self) -> list[Attention]:
         return [a for a in (self.temporal, self.skeletal, self.cross) if a is not None]
 
-    def forward(self, x, emb, text, text_mask, frame_mask):
+    def films(self) -> list[FiLM]:
+        """In the order forward applies them."""
+        return [f for f in (self.film_t, self.film_s, self.film_c if self.cross is not None else None, self.film_f)
+                if f is not None]
+
+    def forward(self, x, scale1, shift, text, text_mask, frame_mask):
+        """scale1, shift (B, len(films()), D): this layer's FiLM modulations."""
         B, T, J, D = x.shape
         shape = (B, T, J)
-        h = self.norm_t(x).transpose(1, 2).reshape(B * J, T, D)
+        films = iter(zip(scale1.unbind(1), shift.unbind(1)))
+        # contiguous: a strided (B*J, T, D) view would send the q/k/v projections down a slower batched product
+        h = self.norm_t(x).transpose(1, 2).reshape(B * J, T, D).contiguous()
         key_mask = None if frame_mask is None else frame_mask.repeat_interleave(J, dim=0)
         h = self.temporal(h, key_mask=key_mask, shape=shape).reshape(B, J, T, D).transpose(1, 2)
-        x = x + self.drop(self.film_t(h, emb))
+        x = x + self.drop(modulate(h, *next(films)))
 
         h = self.skeletal(self.norm_s(x).reshape(B * T, J, D), shape=shape).reshape(B, T, J, D)
-        x = x + self.drop(self.film_s(h, emb))
+        x = x + self.drop(modulate(h, *next(films)))
 
         if self.cross is not None:
             h = self.cross(self.norm_c(x).reshape(B, T * J, D), self.norm_text(text), key_mask=text_mask, shape=shape)
-            x = x + self.drop(self.film_c(h.reshape(B, T, J, D), emb))
+            x = x + self.drop(modulate(h.reshape(B, T, J, D), *next(films)))
 
-        return x + self.drop(self.film_f(self.ff(self.norm_f(x)), emb))
+        return x + self.drop(modulate(self.ff(self.norm_f(x)), *next(films)))
 
 
 class Denoiser(nn.Module):
@@ -138,9 +151,16 @@ class Denoiser(nn.Module):
         self.skip_proj = nn.ModuleList(nn.Linear(2 * d, d) for _ in range(n_skip))
         self.n_skip = n_skip
         self.output = nn.Sequential(nn.LayerNorm(d), nn.Linear(d, d), nn.ReLU(), nn.Linear(d, c.latent_dim))
+        self._films = StackedLinears()
 
     def attentions(self) -> list[Attention]:
         return [a for layer in self.layers for a in layer.attentions()]
+
+    def modulations(self, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every FiLM's (1 + scale, shift), each (B, films, D), from one product: at batch 1 the
+        twenty-odd (1, d) projections, one per sub-block, cost more in calls than in arithmetic."""
+        scale, shift = self._films(F.silu(emb), [f.proj[1] for layer in self.layers for f in layer.films()]).unflatten(-1, (-1, 2, self.config.dim)).unbind(2)
+        return 1 + scale, shift
 
     def set_controller(self, controller) -> None:
         """Attach a controller to every attention module (None detaches)."""
@@ -190,11 +210,14 @@ class Denoiser(nn.Module):
                 raise ValueError("this denoiser is a distilled student and needs the guidance scale")
             emb = emb + self.guidance_mlp(sinusoid(guidance * GUIDANCE_EMBED_SCALE, s).to(h.dtype))
 
-        skips = []
+        scale1, shift = self.modulations(emb)
+        skips, first = [], 0
         for i, layer in enumerate(self.layers):
             if i >= len(self.layers) - self.n_skip:
                 h = self.skip_proj[i - (len(self.layers) - self.n_skip)](torch.cat((h, skips.pop()), dim=-1))
-            h = layer(h, emb, text_tokens, text_mask, frame_mask)
+            films = slice(first, first + len(layer.films()))
+            first = films.stop
+            h = layer(h, scale1[:, films], shift[:, films], text_tokens, text_mask, frame_mask)
             if i < self.n_skip:
                 skips.append(h)
         return self.output(h)
