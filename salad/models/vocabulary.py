@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections import OrderedDict
 from dataclasses import dataclass
 from itertools import pairwise
 from pathlib import Path
@@ -71,6 +72,7 @@ ACTION_SIMILARITY = 0.55
 # the lexicon is lenient (it holds "une", "con", "la"), so a prompt of 3 or more words must also use
 # at least one word of the captions or an English function word.
 ENGLISH_SHARE = 0.6
+WARNINGS_KEPT = 256
 _NON_ASCII_LETTER = re.compile(r"[^\x00-\x7f]")
 # Words any request may use that carry no action or manner of their own.
 _FUNCTION_WORDS = frozenset("""
@@ -270,6 +272,7 @@ class PromptCheck:
         self.index = index
         self._lexicon: frozenset[str] | None = None
         self._sided: frozenset[str] | None = None
+        self._warned: OrderedDict[str, tuple[str, ...]] = OrderedDict()
 
     @classmethod
     def load(cls, model_dir: str | Path, encoder: TextEncoder) -> "PromptCheck | None":
@@ -390,7 +393,16 @@ class PromptCheck:
         return known / len(words) >= ENGLISH_SHARE and (anchored or len(words) < 3)
 
     def warnings(self, prompt: str) -> list[str]:
-        """What a user should know about how `prompt` will be understood; empty when all is well."""
+        """What a user should know about how `prompt` will be understood; empty when all is well.
+        Kept for the last WARNINGS_KEPT prompts: every decoded motion asks again (a millisecond each)."""
+        found = self._warned.get(prompt)
+        if found is None:
+            found = self._warned[prompt] = tuple(self._warnings(prompt))
+            while len(self._warned) > WARNINGS_KEPT:
+                self._warned.popitem(last=False)
+        return list(found)
+
+    def _warnings(self, prompt: str) -> list[str]:
         words = split_words(prompt)
         near = self.nearest(prompt, k=1)
         name, sim = near[0] if near else ("", 0.0)
