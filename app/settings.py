@@ -48,8 +48,8 @@ CLIP_LAYOUT = ("new_joint_vecs", "texts", "test.txt")   # what a dataset build m
 # autocast for forwards of two rows or more on a CPU with native bf16, fp32 otherwise); "fp32" and "bf16"
 # run every forward so. Measured on an AVX-512 BF16 EPYC whose bf16 matmuls ran 2.3x its fp32 ones
 # (session 52, in the studio, medians of 9 generations and 3 fresh edits per setting, interleaved):
-# sampling a generation 1.18 s fp32, 1.21 bf16, 1.10 auto; an edit's 1.91, 1.69, 1.56. One row at a time
-# (the student, unguided steps) bf16 was 10% slower. CPUs without native bf16 run fp32 whatever is asked.
+# sampling a generation 1.18 s fp32, 1.21 bf16, 1.10 auto; an edit's 1.91, 1.69, 1.56 (one row a forward:
+# see BF16_MIN_ROWS). CPUs without native bf16 run fp32 whatever is asked.
 PRECISIONS = ("auto", "fp32", "bf16")
 MAX_RENDER_WORKERS = 7     # salad.render.workers.MAX_WORKERS
 
