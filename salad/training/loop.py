@@ -129,8 +129,11 @@ class Trainer:
         self.ema = copy.deepcopy(self.model).eval().requires_grad_(False) if ema_decay else None
         self.ema_decay = ema_decay
         params = [p for p in self.model.parameters() if p.requires_grad]
+        # fused: the default CPU implementation loops over the parameters in Python (20 of a 550 ms step
+        # against 3 fused, session 71)
+        self.fused_optimizer = True if self.device.type in ("cpu", "cuda") else None
         self.optimizer = torch.optim.AdamW(params, lr=optim.lr, betas=tuple(optim.betas),
-                                           weight_decay=optim.weight_decay)
+                                           weight_decay=optim.weight_decay, fused=self.fused_optimizer)
         self.step_count = 0
         self.warm_from = 0
         self.rng = np.random.default_rng(run.seed + 1000 * self.rank)
@@ -214,6 +217,8 @@ class Trainer:
             load_state_strict(self.ema, parts["ema"], str(path))
         meta = doc["meta"]
         self.optimizer.load_state_dict(_unflatten_optimizer(parts["optimizer"], meta["optimizer"]))
+        for group in self.optimizer.param_groups:   # how a step is computed is not state: this build's way
+            group["fused"] = self.fused_optimizer
         self.step_count = int(meta["step"])
         self.samples_seen = int(meta.get("samples_seen", 0))
         self.warm_from = int(meta.get("warm_from", 0))
