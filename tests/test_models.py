@@ -185,6 +185,45 @@ def test_denoiser_training_mode_uses_dropout_and_eval_mode_is_deterministic():
     assert torch.equal(model(z, t, text), model(z, t, text))
 
 
+def test_stacked_projections_are_their_modules_and_follow_every_change_of_the_weights():
+    """The denoiser applies each self-attention's q, k, v and every FiLM's projection as one stacked
+    product, kept between calls: it must equal the modules it stacks, and never outlive their weights."""
+    import copy
+    torch.manual_seed(0)
+    model = tiny_denoiser(latent_dim=8).eval()
+    z, t, text = torch.randn(2, 6, 7, 8), torch.tensor([10, 500]), torch.randn(2, 4, 16)
+    emb, x = torch.randn(2, 32), torch.randn(3, 5, 32)
+    with torch.no_grad():
+        scale1, shift = model.modulations(emb)
+        films = [f for layer in model.layers for f in layer.films()]
+        assert scale1.shape == shift.shape == (2, len(films), 32)
+        for i, film in enumerate(films):
+            s, h = film.proj(emb).chunk(2, dim=-1)
+            assert torch.allclose(scale1[:, i], 1 + s, atol=1e-6) and torch.allclose(shift[:, i], h, atol=1e-6)
+        attn = model.layers[0].temporal
+        assert torch.allclose(attn(x), attn(x, context=x), atol=1e-6)   # stacked q, k, v against one by one
+
+        other = tiny_denoiser(latent_dim=8).eval()
+        before = model(z, t, text)
+        model.load_state_dict(other.state_dict())
+        assert torch.allclose(model(z, t, text), other(z, t, text), atol=1e-6)
+        assert not torch.allclose(model(z, t, text), before, atol=1e-3)
+
+    model.train().requires_grad_(True)
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    model(z, t, text).pow(2).mean().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for n, p in model.named_parameters()
+               if "to_q" in n or "to_k" in n or "to_v" in n or "film" in n)
+    opt.step()                                  # in place: the stack kept from the eval calls is stale
+    model.eval()
+    with torch.no_grad():
+        assert torch.allclose(model(z, t, text), copy.deepcopy(model)(z, t, text), atol=1e-6)
+        assert not torch.allclose(model(z, t, text), other(z, t, text), atol=1e-3)
+        lin = model.layers[1].film_f.proj[1]
+        lin.weight = torch.nn.Parameter(torch.zeros_like(lin.weight))     # replaced, not changed in place
+        assert torch.allclose(model(z, t, text), copy.deepcopy(model)(z, t, text), atol=1e-6)
+
+
 def test_x0_eps_v_conversions_are_exact():
     s = NoiseSchedule()
     g = torch.Generator().manual_seed(0)
