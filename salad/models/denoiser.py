@@ -159,7 +159,8 @@ class Denoiser(nn.Module):
     def modulations(self, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Every FiLM's (1 + scale, shift), each (B, films, D), from one product: at batch 1 the
         twenty-odd (1, d) projections, one per sub-block, cost more in calls than in arithmetic."""
-        scale, shift = self._films(F.silu(emb), [f.proj[1] for layer in self.layers for f in layer.films()]).unflatten(-1, (-1, 2, self.config.dim)).unbind(2)
+        projections = [f.proj[1] for layer in self.layers for f in layer.films()]
+        scale, shift = self._films(F.silu(emb), projections).unflatten(-1, (-1, 2, self.config.dim)).unbind(2)
         return 1 + scale, shift
 
     def set_controller(self, controller) -> None:
