@@ -188,7 +188,8 @@ class Denoiser(nn.Module):
         guidance (B,) the CFG scale a distilled student is to reproduce (guidance_embedding only)."""
         B, T, J, _ = z.shape
         c = self.config
-        if not torch.compiler.is_compiling():   # masks that mask nothing (one prompt, a fixed length) only cost
+        # masks that mask nothing (one prompt, a fixed length) only cost; asking is a sync on a GPU, so only here
+        if z.device.type == "cpu" and not torch.compiler.is_compiling():
             text_mask = None if text_mask is not None and bool(text_mask.all()) else text_mask
             frame_mask = None if frame_mask is not None and bool(frame_mask.all()) else frame_mask
         if c.cross_attention:
