@@ -142,20 +142,25 @@ class Pipeline:
         self.bf16_min_rows = bf16_min_rows
         self.source = source
         self.prompt_check = prompt_check
-        # the consistency-distilled student (sampler="consistency"), when the model ships one;
-        # student_info: the guidance range it learnt and the teacher it was distilled from
-        self.student = None if student is None else student.eval().to(self.device)
-        self.student_info = student_info or {}
         # inference only: guided control and null-text inversion differentiate through these
         # modules, and weight gradients nobody reads were a third of a decoder backward
-        for m in (self.vae, self.denoiser, self.text_encoder, self.student):
-            if m is not None:
-                m.requires_grad_(False)
+        for m in (self.vae, self.denoiser, self.text_encoder):
+            m.requires_grad_(False)
         self.ddim_eta, self.cfg_rescale, self.cfg_cutoff = DDIM_ETA, CFG_RESCALE, CFG_CUTOFF
         self.projections = LATENT_PROJECTIONS
         self.foot_refine = FOOT_REFINE_EVALUATIONS
         self.compiled: dict[str, Callable] = {}
         self.source_runs = SourceRuns(SOURCE_RUNS)
+        self.use_student(student, student_info)
+
+    def use_student(self, student: Denoiser | None, info: dict | None = None) -> None:
+        """The consistency-distilled student that sampler="consistency" runs (None: none), e.g. the model's own
+        or a checkpoint being chosen during distillation; info: the guidance range it learnt and the teacher it
+        was distilled from (its checkpoint's meta.consistency)."""
+        self.student = None if student is None else student.eval().requires_grad_(False).to(self.device)
+        self.student_info = info or {}
+        self.compiled.pop("student", None)
+        self.source_runs.clear()        # an edit must not replay another network's sampling
 
     def compile(self, parts: tuple[str, ...] = COMPILABLE) -> None:
         """Run `parts` (of COMPILABLE) through torch.compile, with dynamic shapes, from their next call on:
@@ -901,11 +906,13 @@ def end_of_motion(activation: np.ndarray, threshold: float = ACTIVATION_THRESHOL
 
 def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text_encoder: str | dict | None = None,
                   threads: int | None = None, device: str | torch.device = "auto",
-                  bf16_min_rows: int = BF16_MIN_ROWS) -> Pipeline:
+                  bf16_min_rows: int = BF16_MIN_ROWS, student: bool = True) -> Pipeline:
     """Load a model directory holding `vae/` and `denoiser/` checkpoints. path=None means the
     embedded model in assets/model (or $SALAD_MODEL). device: "auto" (a CUDA GPU when torch sees
     one, else the CPU), "cpu", "cuda" or "cuda:N"; the denoiser, the VAE and the text encoder run there.
-    bf16: autocast where the device has native bf16, for forwards of at least bf16_min_rows rows."""
+    bf16: autocast where the device has native bf16, for forwards of at least bf16_min_rows rows.
+    student=False leaves out the directory's consistency student (e.g. one of an earlier teacher, while its
+    successor is distilled: Pipeline.use_student)."""
     device = resolve_device(device)     # a GPU that is not there fails before seconds of loading
     if threads:
         torch.set_num_threads(threads)
@@ -926,10 +933,10 @@ def load_pipeline(path: str | os.PathLike | None = None, bf16: bool = True, text
         raise CheckpointError(f"{root}: the denoiser expects {denoiser.config.text_dim}-d text features but the "
                               f"{encoder.name} encoder gives {encoder.dim}")
     schedule = NoiseSchedule(from_dict(DiffusionConfig, cfg["diffusion"]))
-    student, info = load_student(root, cfg, vae_latent_checksums(root / "vae"))
+    distilled, info = load_student(root, cfg, vae_latent_checksums(root / "vae")) if student else (None, {})
     return Pipeline(vae, norm, scale, denoiser, encoder, schedule, int(cfg["canvas_frames"]), bf16=bf16,
                     bf16_min_rows=bf16_min_rows, source=str(root), prompt_check=PromptCheck.load(root, encoder),
-                    device=device, student=student, student_info=info)
+                    device=device, student=distilled, student_info=info)
 
 
 def load_student(root: Path, teacher_config: dict, vae_checksums: set[str]) -> tuple[Denoiser | None, dict]:

@@ -565,6 +565,43 @@ def test_adversarial_distillation_trains_and_resumes(tiny_model, tiny_dataset, t
     assert not any(k.startswith("disc") for k in student.state_dict())
 
 
+def test_distillation_exports_the_checkpoint_its_validation_judges_best(tiny_model, tiny_dataset, tmp_path, capsys):
+    """select_from judges every checkpoint from that step on by the fidelity checks of the actions in focus,
+    on motions from their training captions, logs each judgement, and model/ holds the best-judged one
+    (the first of equals); it is refused without actions to judge, or past the run's last step."""
+    from salad.checkpoint import read_checkpoint_config
+    from salad.cli import main
+
+    root = labelled_copy(tiny_dataset, tmp_path, kicks=2)
+    cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=6,
+                           extra='focus_classes = ["kick"]\nselect_from = 4')
+    run = tmp_path / "run"
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
+    judged = [json.loads(line) for line in (run / "val.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in judged] == [4, 6]                       # checkpoints every 2 steps, from step 4
+    assert all(set(r["classes"]) == {"kick"} and r["passed"] in (0, 1) for r in judged)
+    assert all(r["score"] == pytest.approx(r["passed"] + 0.49 * r["margin"], abs=1e-3) for r in judged)
+    best = max(judged, key=lambda r: r["score"])
+    meta = read_checkpoint_config(run / "model", "denoiser")["meta"]
+    assert meta["step"] == best["step"] and meta["val"]["score"] == best["score"]
+    assert set(meta["val"]["classes"]["kick"]["checks"]) == {"duration_s", "leg_lift_m", "jerk_mps3"}
+    assert main(["generate", "a person kicks", "--model", str(_with_student(tiny_model, run, tmp_path)),
+                 "--sampler", "consistency", "-o", str(tmp_path / "k.npy")]) == 0
+    for extra, message in (("select_from = 2", "select_from must be 0 unless focus_classes or focus_max_clips"),
+                           ('focus_classes = ["kick"]\nselect_from = 8', "select_from must be in 0..optim.max_steps (6)")):
+        cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=6, extra=extra)
+        assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
+        assert message in capsys.readouterr().err
+
+
+def _with_student(model, run, where):
+    """A copy of the model directory with the run's exported student as its consistency/."""
+    out = where / "with-student"
+    shutil.copytree(model, out)
+    shutil.copytree(run / "model", out / "consistency")
+    return out
+
+
 def test_distillation_config_errors_are_clear(tiny_model, tiny_dataset, tmp_path, capsys):
     from salad.cli import main
 

@@ -61,6 +61,26 @@ def test_rules_pass_and_fail_where_stated():
     assert judge("side", real, sides)["pass"] and not judge("side", real, sides[1:])["pass"]
 
 
+def test_a_checks_margin_is_its_distance_inside_the_rule():
+    """The margin (a checkpoint's validation score reads it) is >= 0 exactly where the check passes, grows
+    with the distance inside the rule as a share of its tolerance, and is clipped to [-1, 1]."""
+    real = [{"duration_s": 4.0, "root_speed_mps": 1.0, "turn_deg": 90.0, "hand_height_m": 1.5, "leg_lift_m": 1.0,
+             "bow_depth_m": 0.5, "still_foot_share": 0.9, "jerk_mps3": 10.0, "side": "right"}] * 3
+    for check, values in (("duration_s", (2.0, 2.6, 4.0, 5.4, 5.5, 9.0)), ("root_speed_mps", (0.5, 0.75, 1.0, 1.31)),
+                          ("turn_deg", (0.0, 54.0, 90.0, 126.5)), ("hand_height_m", (1.2, 1.36, 1.5, 1.66)),
+                          ("leg_lift_m", (0.0, 0.69, 0.7, 1.4, 3.0)), ("bow_depth_m", (0.1, 0.3, 0.9)),
+                          ("still_foot_share", (0.5, 0.72, 1.0)), ("jerk_mps3", (5.0, 20.0, 20.5, 60.0))):
+        judged = [judge(check, real, [{check: v}]) for v in values]
+        for v, j in zip(values, judged):
+            assert (j["margin"] >= 0) == j["pass"] and -1.0 <= j["margin"] <= 1.0, (check, v, j)
+        assert any(j["pass"] for j in judged) and not all(j["pass"] for j in judged), check
+    assert judge("leg_lift_m", real, [{"leg_lift_m": 1.4}])["margin"] == pytest.approx(1.0)
+    assert judge("leg_lift_m", real, [{"leg_lift_m": 0.35}])["margin"] == pytest.approx(-0.5)
+    assert judge("duration_s", real, [{"duration_s": 4.0}])["margin"] == pytest.approx(1.0)
+    assert judge("side", real, [{"side": "right"}] * 3)["margin"] == pytest.approx(0.5, abs=1e-6)
+    assert judge("side", real, [{"side": "left"}] * 3)["margin"] == pytest.approx(-1.0)
+
+
 def test_the_side_check_asks_for_the_hand_the_prompt_names():
     assert named_side("someone waves the Right hand to part") == "right"
     assert named_side("a person waves goodbye using both arms") == named_side("says goodbye waving two hands") == "both"

@@ -237,6 +237,11 @@ class ConsistencyTrainConfig:
     # Trajectory target only (its solves start from noise, so a crossed caption need not describe the row's
     # capture); crossed rows are not judged by a discriminator of data.
     caption_crossover: float = 0.0
+    # from this step on, each checkpoint's student is judged on the actions in focus (the fidelity checks of
+    # motions made from their training captions, salad.eval.fidelity.validate_actions; every judgement goes
+    # to val.jsonl) and model/ keeps the best one; 0: model/ is the last checkpoint. Session 72 saw one
+    # adversarial stage's kick swing 0.3-0.5 m between checkpoints 300 steps apart.
+    select_from: int = 0
     # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
 
@@ -269,6 +274,13 @@ class ConsistencyTrainConfig:
                 where, "focus_rows", "0 unless focus_classes or focus_max_clips names the actions",
                 self.focus_rows)
         require(0 <= self.caption_crossover <= 1, where, "caption_crossover", "in [0, 1]", self.caption_crossover)
+        require(0 <= self.select_from <= self.optim.max_steps, where, "select_from",
+                f"in 0..optim.max_steps ({self.optim.max_steps})", self.select_from)
+        require(not self.select_from or self.focus_classes or self.focus_max_clips, where, "select_from",
+                "0 unless focus_classes or focus_max_clips names the actions it judges", self.select_from)
+        require(not self.select_from or not self.data.bundle, where, "select_from",
+                "0 with a latent bundle (data.bundle): it reads captions and captures from data.root",
+                self.select_from)
         require(not self.caption_crossover or self.target == "trajectory", where, "caption_crossover",
                 '0 with target = "lcd" (its rows are noised captures, which a crossed caption no longer describes)',
                 self.caption_crossover)

@@ -330,12 +330,15 @@ class ConsistencyTask:
             else:
                 frame_dim = c.parts * c.latent_dim
             disc = PromptDiscriminator(frame_dim, c.text_dim, cfg.discriminator)
-        self._focus_motions = None
-        focused = cfg.lambda_adv > 0 or cfg.focus_rows > 0   # the actions are judged, or only given rows
-        if focused and cfg.focus_max_clips > 0:
-            self._focus_motions = self.data.rare_motions(cfg.focus_max_clips, "focus", "out of focus")
-        elif focused and cfg.focus_classes:                  # the config keeps the two exclusive
-            self._focus_motions = self.data.class_motions(cfg.focus_classes, "focus")
+        focus = None
+        # the actions are judged, given rows, or choose the exported checkpoint
+        if cfg.lambda_adv > 0 or cfg.focus_rows > 0 or cfg.select_from > 0:
+            if cfg.focus_max_clips > 0:
+                focus = self.data.rare_motions(cfg.focus_max_clips, "focus", "out of focus")
+            elif cfg.focus_classes:                           # the config keeps the two exclusive
+                focus = self.data.class_motions(cfg.focus_classes, "focus")
+        self._focus_motions = focus if cfg.lambda_adv > 0 or cfg.focus_rows > 0 else None
+        self._selection = _Selection(cfg, self.data.classes_of(focus)) if cfg.select_from else None
         # the motions focus_rows draws from, and how often each (the class balance among them)
         self._focus_index = self._focus_p = None
         if cfg.focus_rows:
@@ -436,6 +439,44 @@ class ConsistencyTask:
                        "cfg_rescale": self.cfg.cfg_rescale, "cfg_cutoff": self.cfg.cfg_cutoff,
                        "teacher": {"path": self.cfg.teacher, "step": teacher_meta.get("step"),
                                    "sha256": self.teacher_doc["files"]["denoiser"]["sha256"]}}
+        if self._selection is not None:
+            val = self._selection.judge(model.target, consistency, meta["step"], path)
+            if val is None:
+                return
+            meta = {**meta, "val": val}
         save_denoiser(path, model.target, self.schedule.config, self.data.text_spec, self.data.canvas,
                       self.vae_checksum, meta={**meta, "consistency": consistency, "train_config": to_dict(self.cfg),
                                                "latent_scale": self.data.latent_scale})
+
+
+class _Selection:
+    """select_from: which checkpoints' students are exported. Each one from select_from on is judged on the
+    actions in focus, on motions from their training captions (validate_actions), and exported only where it
+    scores above the one model/ holds (from this same config)."""
+
+    def __init__(self, cfg: ConsistencyTrainConfig, contents: list[str]):
+        from ..eval.fidelity import fidelity_classes
+        known = {c.key for c in fidelity_classes(None)}
+        if not set(contents) <= known:
+            raise ConfigError(f"select_from judges the actions in focus with the fidelity checks, which have no "
+                              f"class for {sorted(set(contents) - known)}; name others in focus_classes")
+        self.cfg, self.contents, self.pipe = cfg, contents, None
+
+    def judge(self, student: Denoiser, consistency: dict, step: int, path: Path) -> dict | None:
+        """The validation of `student` at `step` (logged to val.jsonl beside `path`), or None where it is not
+        to be exported: before select_from, or not better than the export at `path`."""
+        from ..eval.fidelity import validate_actions
+        from ..eval.selection import best_score, log_validation
+        from ..pipeline import load_pipeline
+        if step < self.cfg.select_from:
+            return None
+        device = next(student.parameters()).device
+        if self.pipe is None:      # the teacher's pipeline without its own student, which may be an older teacher's
+            self.pipe = load_pipeline(self.cfg.teacher, device=device, student=False)
+        self.pipe.use_student(copy.deepcopy(student), consistency)
+        val = validate_actions(self.pipe, self.cfg.data.root, self.contents)
+        self.pipe.use_student(None)
+        log_validation(path.parent, {"step": step, "score": val["score"], "passed": val["passed"],
+                                     "margin": val["margin"],
+                                     "classes": {k: round(v["margin"], 4) for k, v in val["classes"].items()}})
+        return val if val["score"] > best_score(path, "denoiser", to_dict(self.cfg)) else None

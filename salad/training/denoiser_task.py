@@ -170,6 +170,12 @@ class DenoiserTask:
                               f"are {', '.join(sorted(known))}")
         return np.isin(content, classes)
 
+    def classes_of(self, motions: np.ndarray | None) -> list[str]:
+        """The content classes of the training motions marked in `motions` (rare_motions, class_motions)."""
+        if motions is None:
+            return []
+        return sorted(set(np.asarray(self._content_of_motions("focus"))[motions].tolist()))
+
     def _content_of_motions(self, name: str):
         content = self.content
         if content is None and self.bundle is None:
