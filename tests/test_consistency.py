@@ -587,6 +587,12 @@ def test_distillation_exports_the_checkpoint_its_validation_judges_best(tiny_mod
     assert set(meta["val"]["classes"]["kick"]["checks"]) == {"duration_s", "leg_lift_m", "jerk_mps3"}
     assert main(["generate", "a person kicks", "--model", str(_with_student(tiny_model, run, tmp_path)),
                  "--sampler", "consistency", "-o", str(tmp_path / "k.npy")]) == 0
+    # judging draws none of the run's random numbers: the same run unjudged trains step for step alike
+    plain = consistency_toml(tmp_path / "p.toml", root, tiny_model, steps=6, extra='focus_classes = ["kick"]')
+    assert main(["train", "consistency", "--config", str(plain), "--out-dir", str(tmp_path / "plain")]) == 0
+    losses = [[json.loads(line)["loss"] for line in (r / "log.jsonl").read_text().splitlines()]
+              for r in (run, tmp_path / "plain")]
+    assert len(losses[0]) == 6 and losses[0] == losses[1]
     for extra, message in (("select_from = 2", "select_from must be 0 unless focus_classes or focus_max_clips"),
                            ('focus_classes = ["kick"]\nselect_from = 8', "select_from must be in 0..optim.max_steps (6)")):
         cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=6, extra=extra)

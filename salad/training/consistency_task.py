@@ -471,11 +471,14 @@ class _Selection:
         if step < self.cfg.select_from:
             return None
         device = next(student.parameters()).device
-        if self.pipe is None:      # the teacher's pipeline without its own student, which may be an older teacher's
-            self.pipe = load_pipeline(self.cfg.teacher, device=device, student=False)
-        self.pipe.use_student(copy.deepcopy(student), consistency)
-        val = validate_actions(self.pipe, self.cfg.data.root, self.contents)
-        self.pipe.use_student(None)
+        # the run draws the same numbers whether or not it judges its checkpoints (loading the pipeline
+        # initialises modules), so a judged run trains as an unjudged one and resumes as it would have gone on
+        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+            if self.pipe is None:  # the teacher's pipeline without its own student, which may be an older teacher's
+                self.pipe = load_pipeline(self.cfg.teacher, device=device, student=False)
+            self.pipe.use_student(copy.deepcopy(student), consistency)
+            val = validate_actions(self.pipe, self.cfg.data.root, self.contents)
+            self.pipe.use_student(None)
         log_validation(path.parent, {"step": step, "score": val["score"], "passed": val["passed"],
                                      "margin": val["margin"],
                                      "classes": {k: round(v["margin"], 4) for k, v in val["classes"].items()}})
