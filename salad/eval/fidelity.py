@@ -155,7 +155,7 @@ def judge(check: str, real: list[dict], gen: list[dict], cleaned: bool = False,
           sides: list[str | None] | None = None) -> dict:
     """One check of one class: real and generated values and whether it passes RULES[check], with its
     margin: how far inside (> 0) or outside (< 0) the rule the generated value lies, as a share of the
-    rule's tolerance, clipped to [-1, 1] (a score for choosing among checkpoints, salad.eval.selection).
+    rule's tolerance, clipped to [-1, 1] (what validate_actions scores checkpoints by).
     sides: for "side", the hand each generated motion's prompt names (None: the real clips' majority)."""
     if check == "side":
         wants = [s or majority_side(real) for s in (sides or [None] * len(gen))]

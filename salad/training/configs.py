@@ -239,8 +239,8 @@ class ConsistencyTrainConfig:
     caption_crossover: float = 0.0
     # from this step on, each checkpoint's student is judged on the actions in focus (the fidelity checks of
     # motions made from their training captions, salad.eval.fidelity.validate_actions; every judgement goes
-    # to val.jsonl) and model/ keeps the best one; 0: model/ is the last checkpoint. Session 72 saw one
-    # adversarial stage's kick swing 0.3-0.5 m between checkpoints 300 steps apart.
+    # to val.jsonl) and model/ keeps the best one; 0: model/ is the last checkpoint. Session 73 saw one
+    # adversarial stage's kick swing 0.2-0.4 m between checkpoints 50 steps apart.
     select_from: int = 0
     # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
