@@ -64,6 +64,45 @@ def test_the_log_keeps_the_means_since_its_last_line_and_the_learning_rate_as_it
     assert every[0]["lr"] < every[1]["lr"], "in the warm-up, so a mean would differ"
 
 
+class _ExportKilledOnce(VAETask):
+    """A VAE task whose process dies while exporting step `at` (the first time only)."""
+
+    def __init__(self, cfg, at):
+        super().__init__(cfg)
+        self.at, self.exported = at, []
+
+    def export(self, model, path, meta):
+        if meta["step"] == self.at and self.at not in self.exported:
+            self.exported.append(self.at)
+            raise KeyboardInterrupt("killed while exporting")
+        self.exported.append(meta["step"])
+        super().export(model, path, meta)
+
+
+def test_a_checkpoint_whose_export_was_killed_is_exported_when_the_run_resumes(tiny_dataset, tmp_path):
+    cfg = vae_config(tiny_dataset, tmp_path / "run", steps=6, every=3)
+    with pytest.raises(KeyboardInterrupt):
+        Trainer(_ExportKilledOnce(cfg, at=6), cfg.optim, cfg.run).fit()
+    assert json.loads((tmp_path / "run" / "state" / "config.json").read_text())["meta"]["step"] == 3, \
+        "the state is saved after its export, so the run resumes before the step it never exported"
+    resumed = _ExportKilledOnce(cfg, at=None)
+    Trainer(resumed, cfg.optim, cfg.run).fit()
+    assert resumed.exported == [6] and load_vae(tmp_path / "run" / "model")[3]["meta"]["step"] == 6
+    steps = [json.loads(l)["step"] for l in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert steps == list(range(1, 7))
+
+
+def test_the_validation_log_keeps_one_row_per_step_across_a_resume(tmp_path):
+    from salad.eval.selection import log_validation
+    for step in (50, 100, 150):
+        log_validation(tmp_path, {"step": step, "score": step / 100})
+    with open(tmp_path / "val.jsonl", "a") as f:
+        f.write('{"step": 200, "sc')                        # a row torn by a kill
+    log_validation(tmp_path, {"step": 100, "score": 9.0})  # resumed from step 50, step 100 judged again
+    rows = [json.loads(l) for l in (tmp_path / "val.jsonl").read_text().splitlines()]
+    assert rows == [{"step": 50, "score": 0.5}, {"step": 100, "score": 9.0}]
+
+
 def test_resume_refuses_a_different_model(tiny_dataset, tmp_path):
     fit(vae_config(tiny_dataset, tmp_path / "c", steps=2, every=2))
     cfg = vae_config(tiny_dataset, tmp_path / "c", steps=4)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from ..checkpoint import CheckpointError, read_checkpoint_config
 from ..config import training_identity
+from ..files import atomic_write_text
 
 
 def best_score(path: Path, kind: str, config: dict) -> float:
@@ -23,6 +24,17 @@ def best_score(path: Path, kind: str, config: dict) -> float:
 
 
 def log_validation(run_dir: Path, record: dict) -> None:
+    """Appends record (which has a "step") to run_dir/val.jsonl, dropping rows of that step or later: a run
+    resumed from an earlier checkpoint judges those steps again, and the log keeps one row per step."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    with open(run_dir / "val.jsonl", "a") as f:
-        f.write(json.dumps(record) + "\n")
+    path = run_dir / "val.jsonl"
+    step, rows = record.get("step"), []
+    if path.exists():
+        for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+            try:
+                earlier = json.loads(line).get("step")
+            except (json.JSONDecodeError, AttributeError):     # a row torn by a kill
+                continue
+            if not (isinstance(step, int) and isinstance(earlier, int) and earlier >= step):
+                rows.append(line)
+    atomic_write_text(path, "".join(r + "\n" for r in rows + [json.dumps(record)]))
