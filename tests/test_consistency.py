@@ -227,16 +227,25 @@ def test_trajectory_distillation_replays_its_solves_and_resumes(tiny_model, tiny
     from salad.cli import main
     from salad.models.io import load_denoiser
 
-    run = tmp_path / "run"
+    from salad.checkpoint import load_checkpoint
+
+    run, straight = tmp_path / "run", tmp_path / "straight"
     extra = 'target = "trajectory"\nteacher_steps = 6\nreplay = 3\nreplay_buffer = 2'
-    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=4, extra=extra)
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=5, extra=extra)
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
-    consistency_toml(cfg, tiny_dataset, tiny_model, steps=6, extra=extra)
+    consistency_toml(cfg, tiny_dataset, tiny_model, steps=8, extra=extra)
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(straight)]) == 0
     rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
-    assert [r["step"] for r in rows] == [1, 2, 3, 4, 5, 6]
-    # a solve every third step, and the first step after the resume solves afresh (the buffer is not saved)
-    assert [r["solved"] for r in rows] == [1, 0, 0, 1, 1, 0]
+    assert [r["step"] for r in rows] == list(range(1, 9))
+    # a solve every third step, the others replay the buffer's; the state saves where the run is in that
+    # schedule and what its solves were made from, so the resumed run replays and solves as an unbroken one
+    assert [r["solved"] for r in rows] == [1, 0, 0, 1, 0, 0, 1, 0]
+    unbroken = [json.loads(line) for line in (straight / "log.jsonl").read_text().splitlines()]
+    assert [r["loss"] for r in rows] == [r["loss"] for r in unbroken]
+    (_, resumed), (_, whole) = load_checkpoint(run / "state"), load_checkpoint(straight / "state")
+    assert resumed["model"].keys() == whole["model"].keys()
+    assert all(torch.equal(resumed["model"][k], whole["model"][k]) for k in whole["model"])
     assert all(np.isfinite(r["loss"]) for r in rows)
     student, doc = load_denoiser(run / "model")
     assert doc["meta"]["train_config"]["target"] == "trajectory" and student.guidance_mlp[-1].weight.abs().sum() > 0

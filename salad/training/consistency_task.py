@@ -51,6 +51,11 @@ from .denoiser_task import DenoiserTask
 
 
 COND_KEYS = ("text", "text_mask", "frame_mask", "pooled", "auto", "text2", "text_mask2", "pooled2", "guidance")
+# what a solve is made from, kept with it so a training state can save the replay buffer: a solve's states (one
+# per sampler timestep, ~70 MB for a batch of 32) are solved again on resume rather than saved. text, text_mask and
+# pooled are the second half of their "2" keys (the conditional rows after the unconditional ones)
+SOLVE_INPUTS = ("noise", "latents", "sde_seed", "text2", "text_mask2", "pooled2", "frame_mask", "auto", "guidance",
+                "adversarial_rows")
 
 
 class ConsistencyTraining(nn.Module):
@@ -101,7 +106,8 @@ class ConsistencyTraining(nn.Module):
         self.solve_timesteps = sorted(set(even) | set(self.points), reverse=True)
         self.teacher_steps = teacher_steps
         self.replay_buffer = replay_buffer
-        self._solves: list[dict] = []      # recent teacher solves; rebuilt after a resume, not saved
+        self._solves: list[dict] = []      # recent teacher solves
+        self._unsolved: list[dict] = []    # a resumed run's buffer, as SOLVE_INPUTS, until its next step
         self.disc, self.lambda_adv = (discriminator, float(lambda_adv)) if lambda_adv > 0 else (None, 0.0)
         object.__setattr__(self, "decoder",
                            decoder.requires_grad_(False) if decoder is not None and self.disc is not None else None)
@@ -248,11 +254,36 @@ class ConsistencyTraining(nn.Module):
         real = self.sample_stochastic(batch) if self.adversarial_real == "teacher" else batch["latents"]
         return self._judged(real)
 
+    def _solved(self, batch: dict) -> dict:
+        states, x0 = self.solve(batch)
+        return {"states": states, "x0": x0, "real": self._real_for(batch), **{k: batch[k] for k in COND_KEYS},
+                "adversarial_rows": batch.get("adversarial_rows"),
+                "inputs": {k: batch[k] for k in SOLVE_INPUTS if batch.get(k) is not None}}
+
+    def replay_state(self) -> dict[str, torch.Tensor]:
+        """The replay buffer as what its solves were made from ("{solve}.{key}"), for a training state."""
+        return {f"{i}.{k}": v for i, entry in enumerate(self._solves) for k, v in entry["inputs"].items()}
+
+    def restore_replay(self, tensors: dict[str, torch.Tensor]) -> None:
+        """A saved replay buffer: its solves are solved again at the next step, in that step's precision, as the
+        unbroken run solved them."""
+        solves: dict[int, dict] = {}
+        for key, value in tensors.items():
+            i, name = key.split(".", 1)
+            solves.setdefault(int(i), {})[name] = value
+        self._solves, self._unsolved = [], [solves[i] for i in sorted(solves)]
+
     def _trajectory_loss(self, batch: dict):
+        if self._unsolved:
+            device = batch["point"].device
+            for inputs in self._unsolved:
+                b = {k: inputs[k].to(device) if k in inputs else None for k in SOLVE_INPUTS}   # None: no mask
+                B = b["noise"].shape[0]
+                b.update(text=b["text2"][B:], text_mask=b["text_mask2"][B:], pooled=b["pooled2"][B:])
+                self._solves.append(self._solved(b))
+            self._unsolved = []
         if bool(batch["fresh"]) or not self._solves:
-            states, x0 = self.solve(batch)
-            entry = {"states": states, "x0": x0, "real": self._real_for(batch), **{k: batch[k] for k in COND_KEYS},
-                     "adversarial_rows": batch.get("adversarial_rows")}
+            entry = self._solved(batch)
             self._solves = (self._solves + [entry])[-self.replay_buffer:]
         else:
             entry = self._solves[min(int(float(batch["pick"]) * len(self._solves)), len(self._solves) - 1)]
@@ -411,6 +442,15 @@ class ConsistencyTask:
         b["text2"], b["text_mask2"] = torch.cat((empty, text)), torch.cat((empty_mask, mask))
         b["pooled2"] = torch.cat((empty_pooled, b["pooled"]))
         return b
+
+    def training_state(self) -> tuple[dict[str, torch.Tensor], dict]:
+        """What a resumed run needs beyond weights, optimiser and generators to go on as an unbroken one would:
+        where it is in the replay schedule, and the buffer of solves."""
+        return self.model.replay_state(), {"drawn": self._drawn}
+
+    def restore_training_state(self, tensors: dict[str, torch.Tensor], doc: dict) -> None:
+        self._drawn = int(doc["drawn"])
+        self.model.restore_replay(tensors)
 
     def loss(self, model: nn.Module, batch: dict):
         return model(batch)

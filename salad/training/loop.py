@@ -44,6 +44,9 @@ class Task(Protocol):
     # def load_weights(self, model: torch.nn.Module, path: Path, continuing: bool) -> dict
     # optional, for run.validate_every: the model's loss on fixed held-out batches (None: none to give)
     # def validation_loss(self, model: torch.nn.Module) -> float | None
+    # optional, state of the task's own that a resume needs (saved with the training state), and its restore:
+    # def training_state(self) -> tuple[dict[str, torch.Tensor], dict]
+    # def restore_training_state(self, tensors: dict[str, torch.Tensor], doc: dict) -> None
 
 
 def lr_factor(step: int, cfg: OptimConfig, warm_from: int = 0) -> float:
@@ -192,6 +195,8 @@ class Trainer:
         meta = {"step": self.step_count, "optimizer": opt_doc, "numpy_rng": self.rng.bit_generator.state,
                 "python_rng": json.loads(json.dumps(random.getstate())), "samples_seen": self.samples_seen,
                 "warm_from": self.warm_from}
+        if hasattr(self.task, "training_state"):
+            parts["task"], meta["task"] = self.task.training_state()
         save_checkpoint(self.out / STATE_DIR, f"{self.task.kind}-train-state", self.task.config_dict(), parts, meta)
 
     def try_resume(self) -> bool:
@@ -229,6 +234,8 @@ class Trainer:
             self.rng.bit_generator.state = meta["numpy_rng"]
             state = meta["python_rng"]
             random.setstate((state[0], tuple(state[1]), state[2]))
+            if hasattr(self.task, "restore_training_state") and "task" in meta:    # states before it resume without
+                self.task.restore_training_state(parts.get("task", {}), meta["task"])
         return True
 
     def init_weights(self, path: str | Path, carry_step: bool = False) -> None:
