@@ -122,3 +122,32 @@ def test_integer_tensors_are_kept_when_they_agree_and_refused_when_they_differ(t
     with pytest.raises(ValueError, match="denoiser/steps_seen: this integer tensor differs"):
         average_checkpoints([a7, b8], [0.5, 0.5], tmp_path / "refused")
     assert not (tmp_path / "refused").exists()
+
+
+def test_an_average_of_one_recipe_keeps_it_and_distilling_an_average_of_several_is_refused(
+        tiny_model, tiny_dataset, tmp_path, capsys):
+    """Runs of one training config (their seeds may differ) average into a checkpoint that records that config;
+    denoisers trained with different configs record none, and a distillation, which needs the teacher's
+    posterior noise, refuses such a teacher rather than guessing it."""
+    from salad.cli import main
+    from salad.training.average import average_checkpoints
+
+    from conftest import consistency_toml
+
+    doc, parts = load_checkpoint(tiny_model / "denoiser", kind="denoiser")
+    meta = json.loads(json.dumps(doc["meta"]))
+    reseeded, other = json.loads(json.dumps(meta)), json.loads(json.dumps(meta))
+    reseeded["train_config"].setdefault("run", {})["seed"] = 99
+    other["train_config"]["posterior_noise"] = 1.0 - float(meta["train_config"].get("posterior_noise", 1.0))
+    for name, m in (("seed", reseeded), ("other", other)):
+        save_checkpoint(tmp_path / name, "denoiser", doc["config"], parts, m)
+    same = average_checkpoints([tiny_model / "denoiser", tmp_path / "seed"], None, tmp_path / "same")
+    assert load_checkpoint(same)[0]["meta"]["train_config"] == meta["train_config"]
+    teacher = tmp_path / "teacher"
+    teacher.mkdir()
+    (teacher / "vae").symlink_to((tiny_model / "vae").resolve())
+    average_checkpoints([tiny_model / "denoiser", tmp_path / "other"], None, teacher / "denoiser")
+    assert "train_config" not in load_checkpoint(teacher / "denoiser")[0]["meta"]
+    cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, teacher, steps=1)
+    assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "run")]) == 2
+    assert "averages denoisers trained with different configs" in capsys.readouterr().err

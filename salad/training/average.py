@@ -12,6 +12,7 @@ from typing import Sequence
 import torch
 
 from ..checkpoint import load_checkpoint, save_checkpoint
+from ..config import training_identity
 
 # what a student's meta.consistency records that all averaged students must share: the teacher,
 # the guidance range and grid they learnt; default_for is a measurement, which no average inherits
@@ -49,6 +50,12 @@ def average_checkpoints(paths: Sequence[str | Path], weights: Sequence[float] | 
                         for p, w, (doc, _) in zip(paths, weights, loaded)]}
     if ref_info is not None:
         meta["consistency"] = ref_info
+    trained = [doc["meta"].get("train_config") for doc, _ in loaded]
+    if all(isinstance(t, dict) for t in trained) and all(
+            training_identity(t) == training_identity(trained[0]) for t in trained[1:]):
+        # one recipe (runs of it with other seeds or lengths): what a reader of the recipe needs, e.g. a
+        # distillation taking the teacher's posterior noise, holds for the average too; mixed recipes record none
+        meta["train_config"] = trained[0]
     if "latent_scale" in ref_doc["meta"]:
         meta["latent_scale"] = ref_doc["meta"]["latent_scale"]
     return save_checkpoint(out, "denoiser", ref_doc["config"], averaged, meta)

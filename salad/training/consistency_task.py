@@ -53,7 +53,8 @@ from .denoiser_task import DenoiserTask
 COND_KEYS = ("text", "text_mask", "frame_mask", "pooled", "auto", "text2", "text_mask2", "pooled2", "guidance")
 # what a solve is made from, kept with it so a training state can save the replay buffer: a solve's states (one
 # per sampler timestep, ~70 MB for a batch of 32) are solved again on resume rather than saved. text, text_mask and
-# pooled are the second half of their "2" keys (the conditional rows after the unconditional ones)
+# pooled are the second half of their "2" keys (the conditional rows after the unconditional ones); latents are
+# kept only where they are the discriminator's real side (~1.4 MB a solve)
 SOLVE_INPUTS = ("noise", "latents", "sde_seed", "text2", "text_mask2", "pooled2", "frame_mask", "auto", "guidance",
                 "adversarial_rows")
 
@@ -258,7 +259,8 @@ class ConsistencyTraining(nn.Module):
         states, x0 = self.solve(batch)
         return {"states": states, "x0": x0, "real": self._real_for(batch), **{k: batch[k] for k in COND_KEYS},
                 "adversarial_rows": batch.get("adversarial_rows"),
-                "inputs": {k: batch[k] for k in SOLVE_INPUTS if batch.get(k) is not None}}
+                "inputs": {k: batch[k] for k in SOLVE_INPUTS if batch.get(k) is not None
+                           and (k != "latents" or (self.disc is not None and self.adversarial_real == "data"))}}
 
     def replay_state(self) -> dict[str, torch.Tensor]:
         """The replay buffer as what its solves were made from ("{solve}.{key}"), for a training state."""
@@ -339,6 +341,9 @@ class ConsistencyTask:
         # Batches are the denoiser's own (same latents, captions, class balance, length modes),
         # with every caption kept: the teacher's unconditional row is added here.
         teacher_training = doc.get("meta", {}).get("train_config", {})
+        if not teacher_training and "average" in doc.get("meta", {}):
+            raise CheckpointError(f"{root / 'denoiser'} averages denoisers trained with different configs, so the "
+                                  "posterior noise its batches were drawn with is unknown: distil from one of them")
         self.data = DenoiserTask(DenoiserTrainConfig(
             data=cfg.data, model=teacher.config, diffusion=from_dict(DiffusionConfig, tcfg["diffusion"]),
             vae=str(root / "vae"), text_encoder=tcfg["text_encoder"], text_dropout=0.0, optim=cfg.optim,

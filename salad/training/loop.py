@@ -206,10 +206,10 @@ class Trainer:
         doc, parts = load_checkpoint(path, kind=f"{self.task.kind}-train-state")
         # anything that shapes the model, data or optimisation must match the run's (training_identity)
         mine = training_identity(json.loads(json.dumps(self.task.config_dict())))
-        theirs = renamed_keys(doc["config"])
+        theirs = doc["config"]
         cfg = getattr(self.task, "cfg", None)
-        if dataclasses.is_dataclass(cfg):
-            theirs = _with_defaults(theirs, json.loads(json.dumps(dataclasses.asdict(type(cfg)()))))
+        if dataclasses.is_dataclass(cfg):   # renamed first, so that a renamed key does not also take its default
+            theirs = _with_defaults(renamed_keys(theirs), json.loads(json.dumps(dataclasses.asdict(type(cfg)()))))
         theirs = training_identity(theirs)
         differences = _differences(mine, theirs)
         if differences:
