@@ -215,14 +215,13 @@ class Denoiser(nn.Module):
                 raise ValueError("this denoiser is a distilled student and needs the guidance scale")
             emb = emb + self.guidance_mlp(sinusoid(guidance * GUIDANCE_EMBED_SCALE, s).to(h.dtype))
 
-        scale1, shift = self.modulations(emb)
-        skips, first = [], 0
+        # every layer has the same sub-blocks, so the modulations split evenly: (B, layers, films per layer, D)
+        scale1, shift = (m.unflatten(1, (len(self.layers), -1)) for m in self.modulations(emb))
+        skips = []
         for i, layer in enumerate(self.layers):
             if i >= len(self.layers) - self.n_skip:
                 h = self.skip_proj[i - (len(self.layers) - self.n_skip)](torch.cat((h, skips.pop()), dim=-1))
-            films = slice(first, first + len(layer.films()))
-            first = films.stop
-            h = layer(h, scale1[:, films], shift[:, films], text_tokens, text_mask, frame_mask)
+            h = layer(h, scale1[:, i], shift[:, i], text_tokens, text_mask, frame_mask)
             if i < self.n_skip:
                 skips.append(h)
         return self.output(h)
