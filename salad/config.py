@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import tomllib
 import typing
 from pathlib import Path
@@ -24,14 +25,28 @@ def renamed_keys(data: dict[str, Any]) -> dict[str, Any]:
     return {RENAMED.get(k, k): v for k, v in data.items()}
 
 
-def training_identity(cfg: dict[str, Any]) -> dict[str, Any]:
+def training_identity(cfg: dict[str, Any], defaults: dict[str, Any] | None = None) -> dict[str, Any]:
     """The part of a training config (as stored with a run or a model) that makes it another model: run settings
     (threads, logging, checkpoint cadence) and a longer schedule (max_steps, to train on) do not; old key names
-    read as their new ones."""
-    cfg = {k: v for k, v in renamed_keys(cfg).items() if k != "run"}
+    read as their new ones. defaults (the config type's, as a dict): a config stored before a field existed reads
+    as that field's default, which is what its run trained with, so adding a field orphans no run before it."""
+    cfg = renamed_keys(cfg)
+    if defaults is not None:
+        cfg = _with_defaults(cfg, json.loads(json.dumps(defaults)))
+    cfg = {k: v for k, v in cfg.items() if k != "run"}
     if isinstance(cfg.get("optim"), dict):
         cfg["optim"] = {k: v for k, v in cfg["optim"].items() if k != "max_steps"}
     return cfg
+
+
+def _with_defaults(saved: dict, defaults: dict) -> dict:
+    out = dict(saved)
+    for key, value in defaults.items():
+        if key not in out:
+            out[key] = value
+        elif isinstance(value, dict) and isinstance(out[key], dict):
+            out[key] = _with_defaults(out[key], value)
+    return out
 
 
 def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:

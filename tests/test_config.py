@@ -120,3 +120,9 @@ def test_a_kept_best_score_counts_only_for_a_run_of_the_same_model(tmp_path):
     for other in ({**same, "optim": {"lr": 2e-3, "max_steps": 900}}, {**same, "focus_rows": 8}):
         assert best_score(tmp_path / "best", "classifier", other) == float("-inf")
     assert best_score(tmp_path / "missing", "classifier", same) == float("-inf")
+    # a field added since the model was stored reads as its default there: the same model at the default only
+    later = {**same, "select_captions": 4}
+    assert best_score(tmp_path / "best", "classifier", later, defaults={"select_captions": 4}) == 0.75
+    assert best_score(tmp_path / "best", "classifier", {**later, "select_captions": 24},
+                      defaults={"select_captions": 4}) == float("-inf")
+    assert best_score(tmp_path / "best", "classifier", later) == float("-inf")

@@ -583,9 +583,13 @@ def test_distillation_exports_the_checkpoint_its_validation_judges_best(tiny_mod
     from salad.checkpoint import read_checkpoint_config
     from salad.cli import main
 
+    from salad.data.captions import caption_line
+
     root = labelled_copy(tiny_dataset, tmp_path, kicks=2)
+    second = root / "texts" / f"{(root / 'train.txt').read_text().split()[1]}.txt"
+    second.write_text(second.read_text() + caption_line("a person kicks high") + "\n")    # two kick captions
     cfg = consistency_toml(tmp_path / "c.toml", root, tiny_model, steps=6,
-                           extra='focus_classes = ["kick"]\nselect_from = 4')
+                           extra='focus_classes = ["kick"]\nselect_from = 4\nselect_captions = 1')
     run = tmp_path / "run"
     assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(run)]) == 0
     judged = [json.loads(line) for line in (run / "val.jsonl").read_text().splitlines()]
@@ -596,6 +600,7 @@ def test_distillation_exports_the_checkpoint_its_validation_judges_best(tiny_mod
     meta = read_checkpoint_config(run / "model", "denoiser")["meta"]
     assert meta["step"] == best["step"] and meta["val"]["score"] == best["score"]
     assert set(meta["val"]["classes"]["kick"]["checks"]) == {"duration_s", "leg_lift_m", "jerk_mps3"}
+    assert meta["val"]["classes"]["kick"]["motions"] == 8                # one of the two captions x 8 seeds
     assert main(["generate", "a person kicks", "--model", str(_with_student(tiny_model, run, tmp_path)),
                  "--sampler", "consistency", "-o", str(tmp_path / "k.npy")]) == 0
     # judging draws none of the run's random numbers: the same run unjudged trains step for step alike
@@ -629,7 +634,8 @@ def test_distillation_config_errors_are_clear(tiny_model, tiny_dataset, tmp_path
                            ('adversarial_space = "pixels"', "adversarial_space must be latents or motion"),
                            ('adversarial_real = "teacher"', 'adversarial_real must be "data" with target = "lcd"'),
                            ('adversarial_real = "studio"', "adversarial_real must be one of data, teacher"),
-                           ("focus_max_clips = -1", "focus_max_clips must be >= 0")):
+                           ("focus_max_clips = -1", "focus_max_clips must be >= 0"),
+                           ("select_captions = 0", "select_captions must be >= 1")):
         cfg = consistency_toml(tmp_path / "c.toml", tiny_dataset, tiny_model, steps=1, extra=extra)
         assert main(["train", "consistency", "--config", str(cfg), "--out-dir", str(tmp_path / "r")]) == 2
         assert message in capsys.readouterr().err

@@ -314,7 +314,7 @@ def validate_actions(pipe, data_root: str | Path, contents, captions: int = 4, s
                 sides.append(named_side(prompt))
         checks = {c: judge(c, real, gen, sides=sides) for c in cls.checks}
         classes[content] = {"checks": checks, "pass": all(v["pass"] for v in checks.values()),
-                            "margin": min(v["margin"] for v in checks.values())}
+                            "margin": min(v["margin"] for v in checks.values()), "motions": len(gen)}
     passed = sum(c["pass"] for c in classes.values())
     margin = float(np.mean([c["margin"] for c in classes.values()]))
     return {"classes": classes, "passed": passed, "margin": round(margin, 4),

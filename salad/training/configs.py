@@ -242,6 +242,10 @@ class ConsistencyTrainConfig:
     # to val.jsonl) and model/ keeps the best one; 0: model/ is the last checkpoint. Session 73 saw one
     # adversarial stage's kick swing 0.2-0.4 m between checkpoints 50 steps apart.
     select_from: int = 0
+    # how many of each judged action's training captions the judgement draws motions from (8 seeds each; an
+    # action with fewer takes them all): more captions rank checkpoints more as the held-out paraphrases do,
+    # at ~0.1 s a motion on two threads
+    select_captions: int = 4
     # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))
 
@@ -274,6 +278,7 @@ class ConsistencyTrainConfig:
                 where, "focus_rows", "0 unless focus_classes or focus_max_clips names the actions",
                 self.focus_rows)
         require(0 <= self.caption_crossover <= 1, where, "caption_crossover", "in [0, 1]", self.caption_crossover)
+        require(self.select_captions >= 1, where, "select_captions", ">= 1", self.select_captions)
         require(0 <= self.select_from <= self.optim.max_steps, where, "select_from",
                 f"in 0..optim.max_steps ({self.optim.max_steps})", self.select_from)
         require(not self.select_from or self.focus_classes or self.focus_max_clips, where, "select_from",

@@ -522,9 +522,9 @@ class _Selection:
             if self.pipe is None:  # the teacher's pipeline without its own student, which may be an older teacher's
                 self.pipe = load_pipeline(self.cfg.teacher, device=device, student=False)
             self.pipe.use_student(copy.deepcopy(student), consistency)
-            val = validate_actions(self.pipe, self.cfg.data.root, self.contents)
+            val = validate_actions(self.pipe, self.cfg.data.root, self.contents, captions=self.cfg.select_captions)
             self.pipe.use_student(None)
         log_validation(path.parent, {"step": step, "score": val["score"], "passed": val["passed"],
                                      "margin": val["margin"],
                                      "classes": {k: round(v["margin"], 4) for k, v in val["classes"].items()}})
-        return val if val["score"] > best_score(path, "denoiser", to_dict(self.cfg)) else None
+        return val if val["score"] > best_score(path, "denoiser", to_dict(self.cfg), to_dict(type(self.cfg)())) else None

@@ -21,7 +21,7 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, recover_checkpoint, save_checkpoint
-from ..config import renamed_keys, training_identity, validate
+from ..config import training_identity, validate
 from ..files import atomic_write_text
 from ..precision import bf16_supported, resolve_device, to_device
 from .configs import OptimConfig, RunConfig
@@ -92,18 +92,6 @@ def _unflatten_optimizer(tensors: dict[str, torch.Tensor], doc: dict) -> dict:
         pid, key = flat.split(".", 1)
         state.setdefault(int(pid), {})[key] = value
     return {"state": state, "param_groups": doc["param_groups"]}
-
-
-def _with_defaults(saved: dict, defaults: dict) -> dict:
-    """A config saved before a field existed reads as that field's default, which is what the
-    run trained with, so adding a field does not orphan the runs before it."""
-    out = dict(saved)
-    for key, value in defaults.items():
-        if key not in out:
-            out[key] = value
-        elif isinstance(value, dict) and isinstance(out[key], dict):
-            out[key] = _with_defaults(out[key], value)
-    return out
 
 
 def _differences(mine: dict, theirs: dict, prefix: str = "") -> list[tuple[str, Any, Any]]:
@@ -206,11 +194,9 @@ class Trainer:
         doc, parts = load_checkpoint(path, kind=f"{self.task.kind}-train-state")
         # anything that shapes the model, data or optimisation must match the run's (training_identity)
         mine = training_identity(json.loads(json.dumps(self.task.config_dict())))
-        theirs = doc["config"]
         cfg = getattr(self.task, "cfg", None)
-        if dataclasses.is_dataclass(cfg):   # renamed first, so that a renamed key does not also take its default
-            theirs = _with_defaults(renamed_keys(theirs), json.loads(json.dumps(dataclasses.asdict(type(cfg)()))))
-        theirs = training_identity(theirs)
+        theirs = training_identity(doc["config"], dataclasses.asdict(type(cfg)()) if dataclasses.is_dataclass(cfg)
+                                   else None)
         differences = _differences(mine, theirs)
         if differences:
             changed = sorted({key.split(".")[0] for key, _, _ in differences})
