@@ -342,8 +342,9 @@ class ConsistencyTask:
         # with every caption kept: the teacher's unconditional row is added here.
         teacher_training = doc.get("meta", {}).get("train_config", {})
         if not teacher_training and "average" in doc.get("meta", {}):
-            raise CheckpointError(f"{root / 'denoiser'} averages denoisers trained with different configs, so the "
-                                  "posterior noise its batches were drawn with is unknown: distil from one of them")
+            raise CheckpointError(f"{root / 'denoiser'} averages denoisers trained with different configs (or with none "
+                                  "recorded), so the posterior noise its batches were drawn with is unknown: distil "
+                                  "from one of them")
         self.data = DenoiserTask(DenoiserTrainConfig(
             data=cfg.data, model=teacher.config, diffusion=from_dict(DiffusionConfig, tcfg["diffusion"]),
             vae=str(root / "vae"), text_encoder=tcfg["text_encoder"], text_dropout=0.0, optim=cfg.optim,
