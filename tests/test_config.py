@@ -1,3 +1,4 @@
+import dataclasses
 import re
 from argparse import Namespace
 from pathlib import Path
@@ -110,19 +111,33 @@ def test_the_command_line_reports_a_bad_config_without_starting(tiny_dataset, tm
     assert not (tmp_path / "run").exists()
 
 
+@dataclasses.dataclass
+class _Optim:
+    lr: float = 1e-3
+    max_steps: int = 100
+
+
+@dataclasses.dataclass
+class _Run:
+    threads: int = 2
+
+
+@dataclasses.dataclass
+class _Judged:
+    optim: _Optim = dataclasses.field(default_factory=_Optim)
+    run: _Run = dataclasses.field(default_factory=_Run)
+    focus_rows: int = 4
+    select_captions: int = 4
+
+
 def test_a_kept_best_score_counts_only_for_a_run_of_the_same_model(tmp_path):
+    # stored by an older run: an old key name, and no select_captions (added since)
     stored = {"optim": {"lr": 1e-3, "max_steps": 100}, "run": {"threads": 2}, "adversarial_rows": 4}
     save_checkpoint(tmp_path / "best", "classifier", {}, {"model": {"w": torch.zeros(1)}},
                     {"val": {"score": 0.75}, "train_config": stored})
-    # run settings, a longer schedule and a key's new name make the same model: its score stands
-    same = {"optim": {"lr": 1e-3, "max_steps": 900}, "run": {"threads": 1}, "focus_rows": 4}
+    # run settings, a longer schedule, a key's new name and a field at its default make the same model
+    same = _Judged(optim=_Optim(max_steps=900), run=_Run(threads=1))
     assert best_score(tmp_path / "best", "classifier", same) == 0.75
-    for other in ({**same, "optim": {"lr": 2e-3, "max_steps": 900}}, {**same, "focus_rows": 8}):
+    for other in (_Judged(optim=_Optim(lr=2e-3)), _Judged(focus_rows=8), _Judged(select_captions=24)):
         assert best_score(tmp_path / "best", "classifier", other) == float("-inf")
     assert best_score(tmp_path / "missing", "classifier", same) == float("-inf")
-    # a field added since the model was stored reads as its default there: the same model at the default only
-    later = {**same, "select_captions": 4}
-    assert best_score(tmp_path / "best", "classifier", later, defaults={"select_captions": 4}) == 0.75
-    assert best_score(tmp_path / "best", "classifier", {**later, "select_captions": 24},
-                      defaults={"select_captions": 4}) == float("-inf")
-    assert best_score(tmp_path / "best", "classifier", later) == float("-inf")

@@ -92,6 +92,32 @@ def test_a_checkpoint_whose_export_was_killed_is_exported_when_the_run_resumes(t
     assert steps == list(range(1, 7))
 
 
+class _SlowExport(VAETask):
+    """A VAE task whose export takes an hour by the trainer's clock (a judged export takes minutes)."""
+
+    def __init__(self, cfg, clock):
+        super().__init__(cfg)
+        self.clock = clock
+
+    def export(self, model, path, meta):
+        super().export(model, path, meta)
+        self.clock.offset += 3600.0
+
+
+def test_the_logged_samples_per_second_leave_out_the_time_spent_exporting(tiny_dataset, tmp_path, monkeypatch):
+    import types
+
+    import salad.training.loop as loop
+    clock = types.SimpleNamespace(offset=0.0)
+    monkeypatch.setattr(loop, "time", types.SimpleNamespace(time=lambda: time.time() + clock.offset))
+    cfg = vae_config(tiny_dataset, tmp_path / "run", steps=4, every=2)
+    Trainer(_SlowExport(cfg, clock), cfg.optim, cfg.run).fit()
+    assert clock.offset == 2 * 3600.0
+    rates = [json.loads(l)["samples_per_s"] for l in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    # step 3 follows step 2's export: counted in, its 4 samples would take an hour (0.001 samples/s)
+    assert len(rates) == 4 and min(rates) > 0.1, rates
+
+
 def test_the_validation_log_keeps_one_row_per_step_across_a_resume(tmp_path):
     from salad.eval.selection import log_validation
     for step in (50, 100, 150):

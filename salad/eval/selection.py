@@ -5,21 +5,22 @@ import json
 from pathlib import Path
 
 from ..checkpoint import CheckpointError, read_checkpoint_config
-from ..config import training_identity
+from ..config import to_dict, training_identity
 from ..files import atomic_write_text
 
 
-def best_score(path: Path, kind: str, config: dict, defaults: dict | None = None) -> float:
-    """Validation score stored with the checkpoint at `path`, or -inf when there is none from this config
-    (a model left by a run with another config never blocks a new one). defaults: the config type's, which a
-    stored config from before a field existed reads as (training_identity)."""
+def best_score(path: Path, kind: str, cfg) -> float:
+    """Validation score stored with the checkpoint at `path`, or -inf when there is none from a run of the
+    training config `cfg` (a dataclass): a model left by a run with another config never blocks a new one, and a
+    stored config from before a field existed reads as that field's default (training_identity)."""
     try:
         doc = read_checkpoint_config(path, kind)
     except CheckpointError:
         return float("-inf")
     meta = doc.get("meta", {})
     if not isinstance(meta.get("train_config"), dict) or (
-            training_identity(meta["train_config"], defaults) != training_identity(json.loads(json.dumps(config)))):
+            training_identity(meta["train_config"], to_dict(type(cfg)()))
+            != training_identity(json.loads(json.dumps(to_dict(cfg))))):
         return float("-inf")
     return float(meta.get("val", {}).get("score", float("-inf")))
 

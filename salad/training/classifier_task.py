@@ -147,7 +147,7 @@ class ClassifierTask:
     def export(self, model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
         scores = self.validate(model)
         log_validation(path.parent, {"step": meta.get("step"), **{k: round(v, 4) for k, v in scores.items()}})
-        if scores["score"] > best_score(path, KIND, self.config_dict(), to_dict(type(self.cfg)())):
+        if scores["score"] > best_score(path, KIND, self.cfg):
             save_classifier(path, model, self.normalizer.mean, self.normalizer.std,
                             {**meta, "val": scores, "train_config": self.config_dict()})
 

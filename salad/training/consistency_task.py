@@ -246,21 +246,25 @@ class ConsistencyTraining(nn.Module):
             x = sched.step(self._guided(x, tt, batch), t, x, variance_noise=fresh_noise(x, g)).prev_sample
         return x
 
+    @property
+    def _real_is_data(self) -> bool:
+        """The discriminator's real side is the batch's own latents, which a saved solve must then keep."""
+        return self.disc is not None and self.adversarial_real == "data"
+
     @torch.no_grad()
     def _real_for(self, batch: dict) -> torch.Tensor | None:
         """The discriminator's real side for a batch, as it judges it (None without one). For a
         solve it is stored with the solve, so every replay reuses it rather than decoding it again."""
         if self.disc is None:
             return None
-        real = self.sample_stochastic(batch) if self.adversarial_real == "teacher" else batch["latents"]
-        return self._judged(real)
+        return self._judged(batch["latents"] if self._real_is_data else self.sample_stochastic(batch))
 
     def _solved(self, batch: dict) -> dict:
         states, x0 = self.solve(batch)
         return {"states": states, "x0": x0, "real": self._real_for(batch), **{k: batch[k] for k in COND_KEYS},
                 "adversarial_rows": batch.get("adversarial_rows"),
                 "inputs": {k: batch[k] for k in SOLVE_INPUTS if batch.get(k) is not None
-                           and (k != "latents" or (self.disc is not None and self.adversarial_real == "data"))}}
+                           and (k != "latents" or self._real_is_data)}}
 
     def replay_state(self) -> dict[str, torch.Tensor]:
         """The replay buffer as what its solves were made from ("{solve}.{key}"), for a training state."""
@@ -528,4 +532,4 @@ class _Selection:
         log_validation(path.parent, {"step": step, "score": val["score"], "passed": val["passed"],
                                      "margin": val["margin"],
                                      "classes": {k: round(v["margin"], 4) for k, v in val["classes"].items()}})
-        return val if val["score"] > best_score(path, "denoiser", to_dict(self.cfg), to_dict(type(self.cfg)())) else None
+        return val if val["score"] > best_score(path, "denoiser", self.cfg) else None

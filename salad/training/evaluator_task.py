@@ -158,7 +158,7 @@ class EvaluatorTask:
         record = {"step": meta.get("step"), **{k: round(v, 4) for k, v in scores.items()}}
         self.history.append(record)
         log_validation(path.parent, record)
-        if scores["score"] > best_score(path, KIND, self.config_dict(), to_dict(type(self.cfg)())):
+        if scores["score"] > best_score(path, KIND, self.cfg):
             save_evaluator(path, model, self.normalizer.mean, self.normalizer.std,
                            {**meta, "val": scores, "train_config": self.config_dict()})
 

@@ -322,12 +322,15 @@ class Trainer:
                         f.write(json.dumps({"step": self.step_count, "samples_per_s": round(rate, 2),
                                             "time": time.time(), **logs}) + "\n")
             if self.step_count % self.run_cfg.checkpoint_every == 0 or self.step_count == total:
+                started = time.time()
                 # the export first: a process killed while exporting (or judging the export) resumes from the
                 # checkpoint before and exports this step again, rather than going on with it never exported
                 if self.rank == 0:
                     self.task.export(self.ema or self.model, self.out / "model",
                                      {"step": self.step_count, "samples_seen": self.samples_seen})
                 self.save_state()
+                # samples/s is the training's: a judged export takes minutes, which would read as slow steps
+                t0 += time.time() - started
         bar.close()
         if dist.is_initialized():
             dist.barrier()
