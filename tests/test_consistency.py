@@ -216,6 +216,14 @@ def test_the_distillation_target_guides_as_the_teachers_sampler_does(tiny_model)
             for i, w in enumerate((3.0, 8.0)):
                 want = cfg_combine(out[[i, B + i]], w if step >= 300 else 1.0, 0.7)
                 torch.testing.assert_close(got[i:i + 1], want, atol=1e-5, rtol=1e-5)
+    # below the cutoff the teacher runs the conditional rows alone
+    rows = []
+    hook = teacher.register_forward_pre_hook(lambda module, args: rows.append(args[0].shape[0]))
+    with torch.no_grad():
+        for step in (300, 299):
+            m._guided(zt, torch.full((B,), step), batch)
+    hook.remove()
+    assert rows == [2 * B, B]
     plain = ConsistencyTraining(teacher.eval(), NoiseSchedule(DiffusionConfig()), 0.95, 0.001, "trajectory",
                                 teacher_steps=10).eval()
     with torch.no_grad():

@@ -149,6 +149,11 @@ class ConsistencyTraining(nn.Module):
         """The teacher's output with classifier-free guidance at each row's own scale (one forward),
         rescaled, and none below the cutoff."""
         fm = batch["frame_mask"]
+        if bool((t < self.unguided_below).all()):
+            # unguided, the mix is the conditional rows' output: the solve's last steps (8 of 28) need half the rows
+            B = zt.shape[0]     # the conditional rows are the second half, as cfg_combine reads them
+            return self.teacher(zt, t, batch["text2"][B:], batch["text_mask2"][B:], fm,
+                                pooled_text=batch["pooled2"][B:], auto_length=batch["auto"]).float()
         out = self.teacher(torch.cat((zt, zt)), torch.cat((t, t)), batch["text2"], batch["text_mask2"],
                            None if fm is None else torch.cat((fm, fm)), pooled_text=batch["pooled2"],
                            auto_length=torch.cat((batch["auto"], batch["auto"]))).float()
