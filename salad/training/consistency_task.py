@@ -26,6 +26,7 @@ focus_classes those of the named actions; focus_rows gives those actions rows of
 from __future__ import annotations
 
 import copy
+import time
 from pathlib import Path
 from typing import Any
 
@@ -525,7 +526,7 @@ class _Selection:
         from ..pipeline import load_pipeline
         if step < self.cfg.select_from:
             return None
-        device = next(student.parameters()).device
+        device, started = next(student.parameters()).device, time.time()
         # the run draws the same numbers whether or not it judges its checkpoints (loading the pipeline
         # initialises modules), so a judged run trains as an unjudged one and resumes as it would have gone on
         with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
@@ -535,6 +536,7 @@ class _Selection:
             val = validate_actions(self.pipe, self.cfg.data.root, self.contents, captions=self.cfg.select_captions)
             self.pipe.use_student(None)
         log_validation(path.parent, {"step": step, "score": val["score"], "passed": val["passed"],
-                                     "margin": val["margin"],
+                                     "margin": val["margin"], "motions": sum(v["motions"] for v in val["classes"].values()),
+                                     "seconds": round(time.time() - started, 1),
                                      "classes": {k: round(v["margin"], 4) for k, v in val["classes"].items()}})
         return val if val["score"] > best_score(path, "denoiser", self.cfg) else None
