@@ -603,7 +603,8 @@ def test_distillation_exports_the_checkpoint_its_validation_judges_best(tiny_mod
     judged = [json.loads(line) for line in (run / "val.jsonl").read_text().splitlines()]
     assert [r["step"] for r in judged] == [4, 6]                       # checkpoints every 2 steps, from step 4
     assert all(set(r["classes"]) == {"kick"} and r["passed"] in (0, 1) for r in judged)
-    assert all(r["motions"] == 8 and r["seconds"] > 0 for r in judged)    # what each judgement cost
+    # what each judgement cost (a tiny model's may round to 0.0 s)
+    assert all(r["motions"] == 8 and isinstance(r["seconds"], float) and r["seconds"] >= 0 for r in judged)
     assert all(r["score"] == pytest.approx(r["passed"] + 0.49 * r["margin"], abs=1e-3) for r in judged)
     best = max(judged, key=lambda r: r["score"])
     meta = read_checkpoint_config(run / "model", "denoiser")["meta"]
