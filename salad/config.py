@@ -106,6 +106,12 @@ def to_dict(obj) -> dict[str, Any]:
     return dataclasses.asdict(obj)
 
 
+def defaults_of(cfg) -> dict[str, Any] | None:
+    """The defaults of cfg's config type as a dict (what training_identity fills a stored config's missing
+    fields with); None for a config that is not a dataclass."""
+    return to_dict(type(cfg)()) if dataclasses.is_dataclass(cfg) else None
+
+
 def load_toml(cls: type[T], path: str | Path) -> T:
     path = Path(path)
     try:

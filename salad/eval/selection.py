@@ -5,7 +5,7 @@ import json
 from pathlib import Path
 
 from ..checkpoint import CheckpointError, read_checkpoint_config
-from ..config import to_dict, training_identity
+from ..config import defaults_of, to_dict, training_identity
 from ..files import atomic_write_text
 
 
@@ -19,7 +19,7 @@ def best_score(path: Path, kind: str, cfg) -> float:
         return float("-inf")
     meta = doc.get("meta", {})
     if not isinstance(meta.get("train_config"), dict) or (
-            training_identity(meta["train_config"], to_dict(type(cfg)()))
+            training_identity(meta["train_config"], defaults_of(cfg))
             != training_identity(json.loads(json.dumps(to_dict(cfg))))):
         return float("-inf")
     return float(meta.get("val", {}).get("score", float("-inf")))

@@ -244,7 +244,7 @@ class ConsistencyTrainConfig:
     select_from: int = 0
     # how many of each judged action's training captions the judgement draws motions from (8 seeds each; an
     # action with fewer takes them all): more captions rank checkpoints more as the held-out paraphrases do,
-    # at ~0.2 s a motion on one core (24 captions x 6 actions: ~3.5 min a checkpoint)
+    # at ~0.1 s a motion on two threads (24 captions x 6 actions: 100-113 s a checkpoint in session 76's run)
     select_captions: int = 4
     # its network (feature_dim is set from what it judges and the text projection)
     discriminator: DiscriminatorConfig = field(default_factory=lambda: DiscriminatorConfig(levels=1))

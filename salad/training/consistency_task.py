@@ -151,7 +151,7 @@ class ConsistencyTraining(nn.Module):
         rescaled, and none below the cutoff."""
         fm = batch["frame_mask"]
         if bool((t < self.unguided_below).all()):
-            # unguided, the mix is the conditional rows' output: the solve's last steps (8 of 28) need half the rows
+            # unguided, the mix is the conditional rows' output: the solve's last steps need half the rows
             B = zt.shape[0]     # the conditional rows are the second half, as cfg_combine reads them
             return self.teacher(zt, t, batch["text2"][B:], batch["text_mask2"][B:], fm,
                                 pooled_text=batch["pooled2"][B:], auto_length=batch["auto"]).float()

@@ -5,7 +5,6 @@ torchrun: gloo between CPU processes, NCCL between GPUs, one GPU per process).""
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 import os
 import random
@@ -21,7 +20,7 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from ..checkpoint import CheckpointError, load_checkpoint, load_state_strict, recover_checkpoint, save_checkpoint
-from ..config import training_identity, validate
+from ..config import defaults_of, training_identity, validate
 from ..files import atomic_write_text
 from ..precision import bf16_supported, resolve_device, to_device
 from .configs import OptimConfig, RunConfig
@@ -195,8 +194,7 @@ class Trainer:
         # anything that shapes the model, data or optimisation must match the run's (training_identity)
         mine = training_identity(json.loads(json.dumps(self.task.config_dict())))
         cfg = getattr(self.task, "cfg", None)
-        theirs = training_identity(doc["config"], dataclasses.asdict(type(cfg)()) if dataclasses.is_dataclass(cfg)
-                                   else None)
+        theirs = training_identity(doc["config"], defaults_of(cfg))
         differences = _differences(mine, theirs)
         if differences:
             changed = sorted({key.split(".")[0] for key, _, _ in differences})
