@@ -2,6 +2,10 @@
 than one core while a studio is up."""
 from __future__ import annotations
 
+import os
+import re
+import subprocess
+import sys
 import threading
 
 import pytest
@@ -45,3 +49,22 @@ def test_only_the_model_thread_keeps_several_torch_threads_and_the_count_comes_b
         second.close()
     assert torch.get_num_threads() == 2
     torch.set_num_threads(before)
+
+
+def _gomp_spincount(code: str, **env) -> str:
+    """GOMP_SPINCOUNT as torch's OpenMP runtime took it in a fresh interpreter running `code` (libgomp prints its
+    settings at load with OMP_DISPLAY_ENV); skips where torch runs another OpenMP runtime."""
+    environ = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"} | {"OMP_DISPLAY_ENV": "VERBOSE"} | env
+    out = subprocess.run([sys.executable, "-c", code + "; import torch; torch.ones(8).sum()"], env=environ,
+                         capture_output=True, text=True, timeout=120, check=True)
+    found = re.search(r"GOMP_SPINCOUNT = '(\d+)'", out.stdout + out.stderr)
+    if found is None:
+        pytest.skip("torch does not run on libgomp here")
+    return found.group(1)
+
+
+def test_importing_salad_or_the_studio_first_shortens_openmp_spinning_unless_the_caller_chose():
+    assert _gomp_spincount("pass") == "300000"           # libgomp's own default, for comparison
+    assert _gomp_spincount("import salad") == "1000"
+    assert _gomp_spincount("import app") == "1000"
+    assert _gomp_spincount("import salad", GOMP_SPINCOUNT="5000") == "5000"
