@@ -43,8 +43,8 @@ SAMPLER_INFO = {
     "dpm-sde": lambda pipe: (f"standard: the teacher in {SAMPLER_STEPS['dpm-sde']} steps of SDE-DPM-Solver++, as "
                              "faithful to the real captures as DDIM-50 in half the time"),
     "ddim": lambda pipe: f"quality: the teacher in {SAMPLER_STEPS['ddim']} DDIM steps, the paper's sampler",
-    "dpm": lambda pipe: "DPM-Solver++: deterministic, fewer steps for a close result (30 steps: 16 mm from the "
-                        "250-step solution, DDIM-50: 18 mm)",
+    "dpm": lambda pipe: "DPM-Solver++: deterministic, fewer steps for a close result (on the embedded model, 25 steps "
+                        "land 7.8 mm from the 250-step DDIM solution, DDIM-20 11 mm, DDIM-50 3.2 mm)",
 }
 
 
