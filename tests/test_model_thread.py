@@ -64,7 +64,7 @@ def _gomp_spincount(code: str, **env) -> str:
 
 
 def test_importing_salad_or_the_studio_first_shortens_openmp_spinning_unless_the_caller_chose():
-    assert _gomp_spincount("pass") == "300000"           # libgomp's own default, for comparison
+    assert _gomp_spincount("pass") != "1000"             # libgomp's own default (300000 in torch 2.13's), for comparison
     assert _gomp_spincount("import salad") == "1000"
     assert _gomp_spincount("import app") == "1000"
     assert _gomp_spincount("import salad", GOMP_SPINCOUNT="5000") == "5000"
