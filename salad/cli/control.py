@@ -3,16 +3,17 @@ from __future__ import annotations
 
 import argparse
 import math
+from typing import TYPE_CHECKING
 
 from ..editing.spec import MIRROR_PARTS, EditSpec
-from ..motion.control import (PATH_PRESETS, ControlSignal, control_errors, crop_signal, lower_body_signal, parse_points,
-                             path_signal, preset_path, read_keyframes, read_mola_control, read_motion_joints,
-                             read_targets)
-from ..motion.motion import check_output_paths
-from ..motion.representation import FPS
 from .common import add_bvh_units, add_device, add_sampling, apply_sampling, device_of, print_warnings, progress_bar
 
+if TYPE_CHECKING:
+    from ..motion.control import ControlSignal
+
 DEFAULT_PATH_SECONDS = 5.0
+# Spelled out to keep the CLI free of torch; a test checks them against salad.motion.control.PATH_PRESETS.
+PATH_PRESETS = ("line", "circle", "s-curve", "turn-left", "turn-right")
 SOURCES = ("path", "path_preset", "mola", "targets", "keyframes", "lower_body_from")
 
 
@@ -56,6 +57,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def _frames(seconds: float | None, default: float | None = None) -> int | None:
+    from ..motion.representation import FPS
     s = default if seconds is None else seconds
     if s is None:
         return None
@@ -66,6 +68,9 @@ def _frames(seconds: float | None, default: float | None = None) -> int | None:
 
 def signal_from_args(a) -> ControlSignal:
     """The control signal the arguments describe (validated; no model needed)."""
+    from ..motion.control import (crop_signal, lower_body_signal, parse_points, path_signal, preset_path,
+                                  read_keyframes, read_mola_control, read_motion_joints, read_targets)
+    from ..motion.representation import FPS
     given = [k for k in SOURCES if getattr(a, k, None) is not None]
     if len(given) != 1:
         raise ValueError("give exactly one of --path, --path-preset, --mola, --targets, --keyframes, --lower-body-from")
@@ -92,12 +97,15 @@ def signal_from_args(a) -> ControlSignal:
 
 
 def _error_line(m, sig: ControlSignal) -> str:
+    from ..motion.control import control_errors
     e = control_errors(m.joints, sig)
     return (f"control error: mean {e.mean() * 100:.1f} cm, max {e.max() * 100:.1f} cm over {e.size} constrained "
             f"joint-frames")
 
 
 def cmd_control(a) -> int:
+    from ..motion.motion import check_output_paths
+    from ..motion.representation import FPS
     from ..pipeline import load_pipeline
 
     device = device_of(a)

@@ -8,18 +8,17 @@ import json
 import re
 from pathlib import Path
 
-from ..data.labels import read_labels
 from ..eval import EMBEDDED_CLASSIFIER, EMBEDDED_EVALUATOR
-from ..eval.classifiers import load_classifier
-from ..eval.control_bench import OMNICONTROL_JOINTS, evaluate_control, parse_density, parse_joints, write_control_report
-from ..eval.edit_bench import run_edit_benchmark
 from ..eval.edit_suite import DEFAULT_SCALES, MODES, SUITES, default_suite
-from ..eval.fidelity import compare_markdown, evaluate_fidelity, fidelity_classes, pool, rejudge, report_markdown
-from ..eval.length_dist import DEFAULT_BIN_FRAMES, MIN_FRAMES, evaluate_lengths, write_length_report
 from ..eval.paraphrases import PROMPT_SETS
-from ..eval.real_edit_bench import SDEDIT_STRENGTHS, run_real_edit_bench
 from ..files import atomic_write_text, shown_path
 from .common import add_device, add_sampling, apply_sampling, device_of, progress_bar
+
+# Spelled out to keep the CLI free of torch; a test checks them against salad.eval.control_bench.OMNICONTROL_JOINTS,
+# salad.eval.length_dist.DEFAULT_BIN_FRAMES and salad.eval.real_edit_bench.SDEDIT_STRENGTHS.
+OMNICONTROL_JOINTS = ("pelvis", "left_foot", "right_foot", "head", "left_wrist", "right_wrist")
+DEFAULT_BIN_FRAMES = 8
+SDEDIT_STRENGTHS = (0.3, 0.5, 0.7)
 
 
 def cmd_eval(a) -> int:
@@ -117,6 +116,7 @@ def add_eval_control(sub) -> argparse.ArgumentParser:
 
 def cmd_eval_control(a) -> int:
     from ..data.dataset import MotionDataset
+    from ..eval.control_bench import evaluate_control, parse_density, parse_joints, write_control_report
     from ..pipeline import load_pipeline
     from ..eval.evaluator import load_evaluator
 
@@ -182,6 +182,8 @@ def _parse_list(text: str, what: str, kind=str) -> list:
 
 
 def cmd_eval_edit(a) -> int:
+    from ..eval.classifiers import load_classifier
+    from ..eval.edit_bench import run_edit_benchmark
     from ..pipeline import load_pipeline
     from ..eval.edit_report import format_report, write_results
 
@@ -244,6 +246,9 @@ def add_eval_fidelity(sub) -> None:
 
 
 def cmd_eval_fidelity(a) -> int:
+    from ..data.labels import read_labels
+    from ..eval.classifiers import load_classifier
+    from ..eval.fidelity import evaluate_fidelity, fidelity_classes
     from ..pipeline import load_pipeline
 
     if a.compare:
@@ -278,6 +283,8 @@ def cmd_eval_fidelity(a) -> int:
 
 
 def _rejudge_fidelity(sources: list[Path], out: Path, data: str | None) -> int:
+    from ..data.labels import read_labels
+    from ..eval.fidelity import pool, rejudge
     if data is not None:
         read_labels(data)                         # a dataset that cannot be read says so before anything else
     stored = [_stored_fidelity(src)[0] for src in sources]
@@ -288,6 +295,7 @@ def _rejudge_fidelity(sources: list[Path], out: Path, data: str | None) -> int:
 
 def _stored_fidelity(src: Path) -> tuple[dict, dict]:
     """A stored run's results as stored, and judged again under the current rules."""
+    from ..eval.fidelity import rejudge
     try:
         stored = json.loads((src / "results.json").read_text())
         return stored, rejudge(stored)
@@ -296,6 +304,7 @@ def _stored_fidelity(src: Path) -> tuple[dict, dict]:
 
 
 def _compare_fidelity(specs: list[str], out: Path | None) -> int:
+    from ..eval.fidelity import compare_markdown
     runs = []
     for spec in specs:
         src, _, variant = spec.rpartition(":")
@@ -310,6 +319,7 @@ def _compare_fidelity(specs: list[str], out: Path | None) -> int:
 
 
 def _write_fidelity(results: dict, out: Path) -> None:
+    from ..eval.fidelity import report_markdown
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2))
     report = report_markdown(results)
@@ -337,6 +347,8 @@ def add_eval_length(sub) -> None:
 
 def cmd_eval_length(a) -> int:
     from ..data.dataset import MotionDataset
+    from ..data.labels import read_labels
+    from ..eval.length_dist import MIN_FRAMES, evaluate_lengths, write_length_report
     from ..pipeline import load_pipeline
 
     pipe = load_pipeline(a.model, bf16=not a.fp32, threads=a.threads or None, device=device_of(a))
@@ -385,6 +397,7 @@ def _csv(text: str, cast=str) -> list:
 
 def cmd_eval_real_edit(a) -> int:
     import torch
+    from ..eval.real_edit_bench import run_real_edit_bench
     from ..pipeline import load_pipeline
     if a.threads:
         torch.set_num_threads(a.threads)
@@ -439,6 +452,7 @@ def add_eval_classifier(sub) -> None:
 
 def cmd_eval_classifier(a) -> int:
     import torch
+    from ..eval.classifiers import load_classifier
     from ..training.classifier_task import classifier_summary, write_classifier_report
     if a.threads:
         torch.set_num_threads(a.threads)

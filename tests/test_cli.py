@@ -1,0 +1,45 @@
+"""The `salad` command's start-up: its parser is built without torch, so `--help` and argument errors answer at
+once, and the values it spells out to stay free of torch agree with the library's."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from salad.cli import build_parser
+
+HEAVY = ("torch", "numpy", "scipy", "diffusers")
+
+
+def test_parser_and_help_load_no_heavy_module():
+    code = ("import sys, contextlib, io\n"
+            "import salad.cli\n"
+            "for argv in (['--help'], ['control', '--help'], ['eval-fidelity', '--help'], ['edit', 'x', '--mode', 'bad']):\n"
+            "    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):\n"
+            "        try:\n"
+            "            salad.cli.main(argv)\n"
+            "        except SystemExit as e:\n"
+            "            assert e.code in (0, 2), (argv, e.code)\n"
+            f"print(sorted(m for m in {HEAVY!r} if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
+def _defaults(command: str) -> dict:
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    return {a.dest: a for a in sub.choices[command]._actions}
+
+
+def test_spelled_out_values_agree_with_the_library():
+    from salad.editing.real import DEFAULT_INVERSION
+    from salad.eval.control_bench import OMNICONTROL_JOINTS
+    from salad.eval.length_dist import DEFAULT_BIN_FRAMES
+    from salad.eval.real_edit_bench import SDEDIT_STRENGTHS
+    from salad.motion.control import PATH_PRESETS
+
+    assert tuple(_defaults("control")["path_preset"].choices) == PATH_PRESETS
+    inversion = _defaults("edit-real")["inversion"]
+    assert inversion.default == DEFAULT_INVERSION and f"{DEFAULT_INVERSION} (default)" in inversion.help
+    assert _defaults("eval-length")["bin_frames"].default == DEFAULT_BIN_FRAMES
+    assert [float(s) for s in _defaults("eval-real-edit")["sdedit"].default.split(",")] == list(SDEDIT_STRENGTHS)
+    assert ",".join(OMNICONTROL_JOINTS) in _defaults("eval-control")["joints"].help
