@@ -47,6 +47,8 @@ from .motion.representation import CONTACT_SLICE, FPS, MIN_AUTO_FRAMES, Normaliz
 
 EMBEDDED_MODEL = REPO_ROOT / "assets" / "model"
 MAX_PROMPT_CHARS = 300
+# torch seeds a generator with a 64-bit integer, and the step noise takes seed + 1
+MAX_SEED = 2**63 - 2
 ACTIVATION_THRESHOLD = 0.5
 # Auto length is the model's own (its activation channel, MoLA) held within this factor of the length
 # prior (the training motions of the captions nearest the prompt); a motion that ends outside the band
@@ -247,6 +249,13 @@ class Pipeline:
         if len(p) > MAX_PROMPT_CHARS:
             raise ValueError(f"prompt is {len(p)} characters long; the limit is {MAX_PROMPT_CHARS}")
         return p
+
+    @staticmethod
+    def check_seed(seed) -> int:
+        # a negative seed would be taken silently as another one (-1 means "random" in some tools: not here)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= MAX_SEED:
+            raise ValueError(f"seed must be an integer in 0..{MAX_SEED}, got {seed!r}")
+        return int(seed)
 
     def prompt_warnings(self, prompt: str) -> list[str]:
         """What a user should know about how the model will take `prompt` (an action or words it
@@ -582,6 +591,7 @@ class Pipeline:
         prompt = self.check_prompt(prompt)
         frames = self.frames_for(seconds, prompt)
         steps, cfg, sampler, batch = self.check_sampling(steps, cfg, sampler, batch)
+        seed = self.check_seed(seed)
         band = self._band_for(seconds, prompt)
         run = partial(self._generate, prompt, seed=seed, steps=steps, cfg=cfg, sampler=sampler, batch=batch,
                       return_attention=return_attention, progress=progress, foot_lock=foot_lock,
@@ -643,6 +653,7 @@ class Pipeline:
             raise ValueError("give one length per prompt")
         prompts = [self.check_prompt(p) for p in prompts]
         steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
+        seed = self.check_seed(seed)
         for n in frames:
             if n % 4 or not MIN_AUTO_FRAMES <= n <= self.canvas_frames:
                 raise ValueError(f"lengths must be multiples of 4 in {MIN_AUTO_FRAMES}..{self.canvas_frames}, got {n}")
@@ -695,6 +706,7 @@ class Pipeline:
             raise ValueError("time-travel repeats apply to ddim; the consistency sampler makes one clean estimate "
                              "per step")
         steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
+        seed = self.check_seed(seed)
         if not sig.mask[:frames].any():
             raise ValueError(f"the control signal constrains nothing in its first {frames} frames")
         if edit is None:
@@ -810,6 +822,7 @@ class Pipeline:
         source_prompt, target_prompt = self.check_edit(source_prompt, spec)
         frames = self.frames_for(seconds, source_prompt)
         steps, cfg, sampler, _ = self.check_sampling(steps, cfg, sampler)
+        seed = self.check_seed(seed)
         canvas = frames or self.canvas_frames
 
         band = self._band_for(seconds, source_prompt)

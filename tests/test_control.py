@@ -71,6 +71,9 @@ def test_signal_builders_and_validation():
     free = np.full((10, 22, 3), np.nan)
     free[0, 0] = 1.0
     assert make_signal(free).mask.sum() == 3
+    free[1, 1] = np.inf
+    with pytest.raises(ValueError, match="infinite"):
+        make_signal(free)
     assert crop_signal(k, 20).frames == 20
     with pytest.raises(ValueError, match="constrain nothing"):
         crop_signal(keyframe_signal({30: np.ones((22, 3))}, 40), 20)

@@ -48,9 +48,16 @@ def test_bad_inputs_are_rejected_clearly(tiny_model):
     for kwargs, msg in (({"prompt": "   "}, "empty"), ({"prompt": "x" * 400}, "limit"),
                         ({"prompt": "walk", "seconds": 0.1}, "between"), ({"prompt": "walk", "seconds": "soon"}, "number"),
                         ({"prompt": "walk", "steps": 0}, "steps"), ({"prompt": "walk", "cfg": float("nan")}, "cfg"),
-                        ({"prompt": "walk", "sampler": "euler"}, "sampler"), ({"prompt": "walk", "batch": 0}, "batch")):
+                        ({"prompt": "walk", "sampler": "euler"}, "sampler"), ({"prompt": "walk", "batch": 0}, "batch"),
+                        ({"prompt": "walk", "seed": -1}, "seed"), ({"prompt": "walk", "seed": 2**70}, "seed"),
+                        ({"prompt": "walk", "seed": 1.5}, "seed")):
         with pytest.raises(ValueError, match=msg):
             pipe.generate(**kwargs)
+    for call in (lambda: pipe.edit("walk", "run", seed=-1), lambda: pipe.generate_batch(["walk"], [20], seed=-1),
+                 lambda: pipe.control("walk", targets=np.zeros((20, 22, 3)), seed=-1)):
+        with pytest.raises(ValueError, match=r"seed must be an integer in 0\.\."):
+            call()
+    assert pipe.generate("walk", seconds=1.0, steps=2, seed=np.int64(3)).seed == 3
     with pytest.raises(CheckpointError, match="not found"):
         load_pipeline(tiny_model.parent / "nowhere")
 

@@ -174,6 +174,7 @@ def edit_real(pipe, motion, source_prompt: str, target_prompt: str | None = None
                                    self_inject=self_inject)
     pipe.check_edit(source_prompt, spec)   # fail before the slow part
     steps, cfg, _, _ = pipe.check_sampling(steps, cfg, sampler)
+    seed = pipe.check_seed(seed)
     if sampler == "consistency":
         real = read_real(pipe, motion, bone_lengths, retarget, trim)
         res = edit_encoded_consistency(pipe, encode(pipe, real), spec, source_prompt, steps, cfg, seed, progress,

@@ -37,11 +37,13 @@ class ControlSignal:
 
 def make_signal(targets, mask=None) -> ControlSignal:
     """Validate and normalise targets and mask. Without a mask, finite targets are constrained
-    and NaN ones free."""
+    and NaN ones free (an infinite one is an error: a free entry is NaN)."""
     t = np.asarray(targets, dtype=np.float64)
     if t.ndim != 3 or t.shape[1:] != (sk.NUM_JOINTS, 3):
         raise ValueError(f"targets must have shape (T, 22, 3), got {t.shape}")
     if mask is None:
+        if np.isinf(t).any():
+            raise ValueError("targets hold infinite values: give NaN for the entries that are free")
         m = np.isfinite(t)
     else:
         m = np.asarray(mask)
