@@ -1,4 +1,5 @@
-"""Atomic file writes: a file appears complete under its name, or not at all."""
+"""Atomic file writes: a file appears complete under its name, or not at all; and the check that an output
+folder can be written, made before the work that ends by writing there."""
 from __future__ import annotations
 
 import os
@@ -58,3 +59,15 @@ def shown_path(path: str | Path) -> str:
         return ""
     p = Path(path).resolve()
     return str(p.relative_to(REPO_ROOT)) if p.is_relative_to(REPO_ROOT) else str(path)
+
+
+def check_writable_dir(path: str | Path) -> None:
+    """Raise ValueError unless `path` is a folder this process can write in, or one it can make (its nearest
+    existing ancestor is such a folder)."""
+    existing = Path(path).absolute()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"cannot write in {path}: {existing} is not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"cannot write in {path}: {existing} is not writable (permission denied)")

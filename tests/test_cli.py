@@ -43,3 +43,16 @@ def test_spelled_out_values_agree_with_the_library():
     assert _defaults("eval-length")["bin_frames"].default == DEFAULT_BIN_FRAMES
     assert [float(s) for s in _defaults("eval-real-edit")["sdedit"].default.split(",")] == list(SDEDIT_STRENGTHS)
     assert ",".join(OMNICONTROL_JOINTS) in _defaults("eval-control")["joints"].help
+
+
+def test_an_output_that_cannot_be_written_fails_before_the_model_loads(tmp_path, capsys):
+    from salad.cli import main
+
+    afile = tmp_path / "a.txt"
+    afile.write_text("x")
+    missing_model = str(tmp_path / "no-model")
+    for argv in (["generate", "walk", "-o", str(afile / "walk.npy")], ["edit", "walk", "run", "-o", str(afile / "out")],
+                 ["control", "walk", "--path-preset", "line", "-o", str(afile / "walk.bvh")]):
+        assert main(argv + ["--model", missing_model]) == 2
+        err = capsys.readouterr().err
+        assert "is not a directory" in err and "no-model" not in err, err

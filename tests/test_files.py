@@ -2,7 +2,7 @@ import os
 
 import pytest
 
-from salad.files import atomic_write, atomic_write_text
+from salad.files import atomic_write, atomic_write_text, check_writable_dir
 
 
 def test_atomic_writes_have_ordinary_permissions_and_leave_nothing_on_failure(tmp_path):
@@ -73,3 +73,17 @@ def test_reports_name_repository_paths_relative_to_it(tmp_path, monkeypatch):
     assert shown_path("assets/eval/classifier") == "assets/eval/classifier"
     assert shown_path(tmp_path / "model") == str(tmp_path / "model")     # outside the repository: as given
     assert shown_path("") == ""                                         # none given stays none, not "."
+
+
+def test_output_folders_are_checked_before_any_work(tmp_path):
+    check_writable_dir(tmp_path)
+    check_writable_dir(tmp_path / "new" / "deeper")          # made later, on save
+    afile = tmp_path / "a.txt"
+    afile.write_text("x")
+    with pytest.raises(ValueError, match=r"cannot write in .*a\.txt.* is not a directory"):
+        check_writable_dir(afile / "sub")
+    if os.geteuid() != 0:                                    # root may write anywhere
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o500)
+        with pytest.raises(ValueError, match="not writable"):
+            check_writable_dir(locked / "out")

@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..editing.spec import DEFAULT_SELF_INJECT, EDIT_MODES, HOLD_CHOICES, MIRROR_PARTS, EditSpec
+from ..files import check_writable_dir
 from .common import (add_bvh_units, add_device, add_sampling, apply_sampling, device_of, parse_reweight, print_warnings,
                      progress_bar)
 
@@ -20,6 +21,7 @@ def cmd_edit(a) -> int:
     from ..render import render_side_by_side
     device = device_of(a)
     spec = edit_spec(a, hold=None if a.hold == "none" else a.hold)
+    check_writable_dir(a.output)
     pipe = load_pipeline(a.model, bf16=not a.fp32, device=device)
     apply_sampling(pipe, a)
     bar, update = progress_bar("editing")
@@ -109,6 +111,8 @@ def cmd_edit_real(a) -> int:
     check_output_paths(a.output + a.reconstruction)
     if a.side_by_side and Path(a.side_by_side).suffix.lower() != ".mp4":
         raise ValueError(f"{a.side_by_side}: unsupported output type for --side-by-side; use .mp4")
+    if a.side_by_side:
+        check_writable_dir(Path(a.side_by_side).parent)
     pipe = load_pipeline(a.model, device=device)
     apply_sampling(pipe, a)
     pipe.check_edit(a.source, spec)

@@ -9,7 +9,7 @@ import numpy as np
 
 from .bvh_export import DEFAULT_UNITS as DEFAULT_BVH_UNITS
 from .representation import FPS
-from ..files import atomic_write
+from ..files import atomic_write, check_writable_dir
 
 OUTPUT_TYPES = (".npy", ".npz", ".bvh", ".mp4", ".gif", ".png")
 
@@ -22,6 +22,7 @@ def check_output_paths(outputs) -> list[Path]:
             raise ValueError(f"{p}: unsupported output type {p.suffix or '(none)'!r}; use {', '.join(OUTPUT_TYPES)}")
         if p.is_dir():
             raise ValueError(f"{p}: is a directory; give a file name")
+        check_writable_dir(p.parent)
     return paths
 
 
