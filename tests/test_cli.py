@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 from salad.cli import build_parser
 
@@ -56,3 +57,13 @@ def test_an_output_that_cannot_be_written_fails_before_the_model_loads(tmp_path,
         assert main(argv + ["--model", missing_model]) == 2
         err = capsys.readouterr().err
         assert "is not a directory" in err and "no-model" not in err, err
+
+
+def test_the_console_command_keeps_main_s_exit_status():
+    salad = Path(sys.executable).with_name("salad")
+    assert salad.is_file(), "the package is installed with its `salad` console command (make setup)"
+    ok = subprocess.run([str(salad), "--help"], capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0 and "generate" in ok.stdout
+    bad = subprocess.run([str(salad), "generate", "walk", "-o", "walk.txt"], capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 2 and "unsupported output type" in bad.stderr

@@ -3,6 +3,7 @@ functions; the library below holds no argparse code."""
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import sys
 
@@ -38,3 +39,13 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError, RuntimeError) as e:
         print(f"salad: error: {e}", file=sys.stderr)
         return 2
+
+
+def run() -> None:
+    """The `salad` console command: main(), then exit without the interpreter's last garbage collections."""
+    code = main()
+    # At exit CPython collects over every object the imported libraries made (torch, transformers, diffusers,
+    # scipy): 0.9-1.2 s of a 7.5 s `salad generate -o x.mp4` on this CPU. Frozen objects are left out; outputs
+    # are written and closed by now, and atexit handlers (render workers, training's process group) still run.
+    gc.freeze()
+    sys.exit(code)

@@ -1,6 +1,4 @@
 """`python -m salad.cli`, as torchrun starts the data-parallel training."""
-import sys
+from . import run
 
-from . import main
-
-sys.exit(main())
+run()
