@@ -51,8 +51,8 @@ def average_checkpoints(paths: Sequence[str | Path], weights: Sequence[float] | 
     if ref_info is not None:
         meta["consistency"] = ref_info
     trained = [doc["meta"].get("train_config") for doc, _ in loaded]
-    if all(isinstance(t, dict) for t in trained) and all(
-            training_identity(t) == training_identity(trained[0]) for t in trained[1:]):
+    identities = [training_identity(t) for t in trained] if all(isinstance(t, dict) for t in trained) else []
+    if identities and all(i == identities[0] for i in identities[1:]):
         # one recipe (runs of it with other seeds or lengths): what a reader of the recipe needs, e.g. a
         # distillation taking the teacher's posterior noise, holds for the average too; mixed recipes record none
         meta["train_config"] = trained[0]
