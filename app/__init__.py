@@ -4,10 +4,7 @@
 package switches off Gradio analytics and model-hub look-ups unless the caller has
 set those variables already, and torch's OpenMP threads wait as `salad` sets them.
 """
-import os
+# the first import of salad, before any module here loads torch: it sets how OpenMP threads wait
+from salad.environment import use_offline_defaults
 
-import salad  # noqa: F401  (before any module here loads torch: it sets how OpenMP threads wait)
-
-for _key, _value in (("GRADIO_ANALYTICS_ENABLED", "False"), ("HF_HUB_OFFLINE", "1"),
-                     ("HF_HUB_DISABLE_TELEMETRY", "1"), ("TRANSFORMERS_OFFLINE", "1")):
-    os.environ.setdefault(_key, _value)
+use_offline_defaults()

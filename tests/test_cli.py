@@ -1,12 +1,16 @@
 """The `salad` command's start-up: its parser is built without torch, so `--help` and argument errors answer at
-once, and the values it spells out to stay free of torch agree with the library's."""
+once; the values it spells out to stay free of torch agree with the library's; it and the studio start offline."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from salad.cli import build_parser
+from salad.environment import OFFLINE_DEFAULTS
 
 HEAVY = ("torch", "numpy", "scipy", "diffusers")
 
@@ -67,3 +71,25 @@ def test_the_console_command_keeps_main_s_exit_status():
     bad = subprocess.run([str(salad), "generate", "walk", "-o", "walk.txt"], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and "unsupported output type" in bad.stderr
+
+
+@pytest.mark.parametrize("entry", ["import app", "import salad.cli; salad.cli.main(['data', '--help'])"])
+def test_the_command_and_the_studio_start_offline_keeping_what_the_caller_set(entry):
+    code = ("import contextlib, io, os\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            "    try:\n"
+            f"        {entry}\n"
+            "    except SystemExit:\n"
+            "        pass\n"
+            "print(os.environ['HF_HUB_OFFLINE'], os.environ['TRANSFORMERS_OFFLINE'], "
+            "os.environ['GRADIO_ANALYTICS_ENABLED'])\n")
+    env = {k: v for k, v in os.environ.items() if k not in OFFLINE_DEFAULTS}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["1", "1", "False"]
+    env["TRANSFORMERS_OFFLINE"] = "0"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert out.stdout.split() == ["1", "0", "False"]
+    plain = subprocess.run([sys.executable, "-c", "import os, salad; print('HF_HUB_OFFLINE' in os.environ)"],
+                           capture_output=True, text=True, timeout=120, env=env)
+    assert plain.stdout.strip() == "False"      # the library alone leaves the process as it was

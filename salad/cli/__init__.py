@@ -4,17 +4,10 @@ from __future__ import annotations
 
 import argparse
 import gc
-import os
 import sys
 
+from ..environment import use_offline_defaults
 from . import bench, control, data, edit, eval, generate, train
-
-
-def _env_defaults() -> None:
-    # Never reach for a model hub or send telemetry: everything here runs offline.
-    for k, v in (("HF_HUB_OFFLINE", "1"), ("HF_HUB_DISABLE_TELEMETRY", "1"), ("TRANSFORMERS_OFFLINE", "1"),
-                 ("GRADIO_ANALYTICS_ENABLED", "False")):
-        os.environ.setdefault(k, v)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -30,7 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    _env_defaults()
+    use_offline_defaults()
     args = build_parser().parse_args(argv)
     try:
         return args.func(args) or 0
