@@ -108,11 +108,9 @@ def cmd_edit_real(a) -> int:
 
     device = device_of(a)
     spec = edit_spec(a)
-    check_output_paths(a.output + a.reconstruction)
     if a.side_by_side and Path(a.side_by_side).suffix.lower() != ".mp4":
         raise ValueError(f"{a.side_by_side}: unsupported output type for --side-by-side; use .mp4")
-    if a.side_by_side:
-        check_writable_dir(Path(a.side_by_side).parent)
+    check_output_paths(a.output + a.reconstruction + ([a.side_by_side] if a.side_by_side else []))
     pipe = load_pipeline(a.model, device=device)
     apply_sampling(pipe, a)
     pipe.check_edit(a.source, spec)
