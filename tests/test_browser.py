@@ -335,23 +335,6 @@ def test_a_path_control_shows_the_guided_motion_and_its_error(studio_url, page):
     assert not page.outside_requests, f"the page reached outside hosts: {page.outside_requests[:5]}"
 
 
-def upload(page, selector: str, path, shown: str) -> None:
-    """Put the file `path` into the upload component `selector` and wait until it shows `shown`. Twice in clean-clone
-    CI runs (once beside other jobs, once quiet) the uploaded name never showed in 120 s, though the test passed
-    alone every time: a file set on the input of a tab that has just opened can be lost, so an upload that does not
-    show within 30 s is made again (a user's upload comes seconds after the tab opens)."""
-    from playwright.sync_api import TimeoutError as PlaywrightTimeout
-
-    for attempt in range(3):
-        page.locator(f"{selector} input[type=file]").set_input_files(str(path))
-        try:
-            page.locator(selector).get_by_text(shown).wait_for(timeout=30_000)
-            return
-        except PlaywrightTimeout:
-            if attempt == 2:
-                raise
-
-
 def test_a_real_motion_upload_is_mirrored_next_to_its_input(studio_url, page, bandai_subset, tmp_path):
     import shutil
 
@@ -361,7 +344,8 @@ def test_a_real_motion_upload_is_mirrored_next_to_its_input(studio_url, page, ba
     shutil.copy(bandai_subset / f"{BANDAI_SUBSET[2]}.bvh", bvh)
     page.goto(studio_url, wait_until="load")
     page.get_by_role("tab", name="Real motion").click()
-    upload(page, "#real-upload", bvh, "wave-left-hand.bvh")
+    page.locator("#real-upload input[type=file]").set_input_files(str(bvh))
+    page.locator("#real-upload").get_by_text("wave-left-hand.bvh").wait_for()
     page.locator("#real-source textarea").fill("a person waves their left hand")
     page.locator("#real-mode label", has_text="mirror").click()
     page.locator("#real-tab").get_by_text("Inversion and sampling", exact=True).click()
